@@ -1,0 +1,52 @@
+"""The packages install, expose a version, and the CLI entry point answers --help."""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import envs
+import xrl_jax
+
+ROOT = Path(__file__).resolve().parents[1]
+SEMVER = re.compile(r"^\d+\.\d+\.\d+")
+
+
+def test_versions_are_exposed():
+    assert SEMVER.match(xrl_jax.__version__)
+    assert SEMVER.match(envs.__version__)
+
+
+def test_envs_does_not_depend_on_xrl_jax():
+    for path in (ROOT / "envs").rglob("*.py"):
+        text = path.read_text()
+        assert "import xrl_jax" not in text and "from xrl_jax" not in text, path
+
+
+def run_cli(*args):
+    return subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "run.py"), *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def test_run_help_exits_zero():
+    result = run_cli("--help")
+    assert result.returncode == 0, result.stderr
+    for option in ("--env", "--algo", "--seeds", "--steps", "--preset", "--set", "--out", "--resume"):
+        assert option in result.stdout
+
+
+def test_run_rejects_unknown_env_in_one_line():
+    result = run_cli("--env", "moon")
+    assert result.returncode == 2
+    assert "invalid choice: 'moon'" in result.stderr
+    assert "tracking" in result.stderr
+
+
+def test_run_rejects_non_positive_seeds():
+    result = run_cli("--seeds", "0")
+    assert result.returncode == 2
+    assert "positive integer" in result.stderr
