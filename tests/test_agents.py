@@ -1,0 +1,456 @@
+"""Agents: update order (§1.5), jit + vmap over seeds, determinism, acting modes (§3.7–3.8),
+the XSAC Monte-Carlo objective (§8.6), XDSAC closed form, κ, α direction (§8.10), masking."""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from xrl_jax import losses
+from xrl_jax.agents import ACT_MODES, AgentState, HyperParams, make_agent
+from xrl_jax.config import TRACED_FIELDS, AgentConfig
+from xrl_jax.distributions import SquashedGaussianMixture
+
+ALGOS = ("sac", "dsac", "xsac", "xdsac")
+O, F, S, B = 3, 4, 2, 5  # noqa: E741  (objects, features, state, batch)
+NUM_ACTIONS = {"sac": 2, "xsac": 2, "dsac": 4, "xdsac": 4}
+SEEDS = 2
+EXAMPLE = {"state": jnp.zeros(S), "things_set": jnp.zeros((O, F))}
+
+
+def tiny_config(algo: str, **changes) -> AgentConfig:
+    base = dict(
+        algo=algo,
+        actor_width=8,
+        actor_depth=1,
+        critic_width=8,
+        critic_depth=1,
+        fe_width=8,
+        feature_extractor="flat_pe",
+        pe_freqs=1,
+        actor_lr=1e-2,
+        critic_lr=1e-2,
+        tau=0.1,
+        kappa=0.05,
+    )
+    base.update(changes)
+    return AgentConfig(**base)
+
+
+def make_batch(key, algo, batch=B, absent_value=0.0):
+    """Random batch in the documented layout; slot 2 is absent in every observation."""
+    keys = jax.random.split(key, 8)
+    discrete = algo in ("dsac", "xdsac")
+
+    def obs(k1, k2):
+        rows = jax.random.uniform(k1, (batch, O, F), minval=-1, maxval=1)
+        rows = rows.at[..., 0].set(1.0).at[:, 2, :].set(absent_value).at[:, 2, 0].set(0.0)
+        return {"state": jax.random.normal(k2, (batch, S)), "things_set": rows}
+
+    if discrete:
+        action = jax.random.randint(keys[0], (batch,), 0, NUM_ACTIONS[algo])
+    else:
+        action = jax.random.uniform(keys[0], (batch, NUM_ACTIONS[algo]), minval=-1, maxval=1)
+    return {
+        "obs": obs(keys[1], keys[2]),
+        "action": action,
+        "reward": jax.random.normal(keys[3], (batch,)),
+        "next_obs": obs(keys[4], keys[5]),
+        "terminated": jnp.arange(batch) == 0,
+        "truncated": jnp.zeros(batch, bool),
+    }
+
+
+@functools.cache
+def vmapped_update_run(algo):
+    """Agent, per-seed states (seed 0 wants low entropy, seed 1 high) and one vmapped, jitted update."""
+    agent = make_agent(tiny_config(algo), EXAMPLE, NUM_ACTIONS[algo])
+    states = jax.vmap(agent.init)(jax.random.split(jax.random.PRNGKey(0), SEEDS))
+    states = states.replace(hparams=states.hparams.replace(target_entropy=jnp.array([-100.0, 100.0])))
+    batches = jax.vmap(lambda k: make_batch(k, algo))(jax.random.split(jax.random.PRNGKey(1), SEEDS))
+    update = jax.jit(jax.vmap(agent.update))
+    keys = jax.random.split(jax.random.PRNGKey(2), SEEDS)
+    new_states, metrics = update(keys, states, batches)
+    return {
+        "algo": algo,
+        "agent": agent,
+        "states": states,
+        "batches": batches,
+        "update": update,
+        "keys": keys,
+        "new_states": new_states,
+        "metrics": metrics,
+    }
+
+
+@pytest.fixture(scope="module", params=ALGOS)
+def setup(request):
+    return vmapped_update_run(request.param)
+
+
+def leaves_close(a, b, **kw):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_allclose(x, y, **kw)
+
+
+def test_update_vmaps_over_seeds_and_is_finite(setup):
+    metrics, new_states = setup["metrics"], setup["new_states"]
+    expected = {"loss_actor", "loss_critic", "loss_ent_coef", "grad_norm_actor", "grad_norm_critic"}
+    expected |= {"ent_coef", "entropy_mean", "q_val_min", "q_val_max"}
+    if setup["algo"] in ("xsac", "xdsac"):
+        expected |= {"mixture_entropy", "kappa"}
+    assert expected <= set(metrics)
+    for name, value in metrics.items():
+        assert value.shape == (SEEDS,), name
+        assert np.all(np.isfinite(value)), name
+    np.testing.assert_array_equal(new_states.step, [1, 1])
+    # seeds are independent: different parameters after init and after the update
+    for leaf in jax.tree_util.tree_leaves(new_states.actor_params):
+        if leaf.ndim >= 3:  # kernels (seed axis first): random init differs per seed
+            assert not np.allclose(leaf[0], leaf[1])
+
+
+def test_update_is_deterministic_under_a_fixed_key(setup):
+    again, metrics = setup["update"](setup["keys"], setup["states"], setup["batches"])
+    leaves_close(again, setup["new_states"], rtol=0, atol=0)
+    leaves_close(metrics, setup["metrics"], rtol=0, atol=0)
+    other, _ = setup["update"](setup["keys"][::-1], setup["states"], setup["batches"])
+    if setup["algo"] in ("sac", "xsac"):  # the discrete updates use no randomness at all
+        assert not np.allclose(
+            other.critic_params["params"]["heads"]["q"]["kernel"],
+            setup["new_states"].critic_params["params"]["heads"]["q"]["kernel"],
+        )
+
+
+def test_entropy_coefficient_moves_towards_target(setup):
+    """§8.10 at agent level: seed 0 (target −100, entropy above it) lowers α, seed 1 raises it."""
+    old = np.exp(np.asarray(setup["states"].log_alpha))
+    new = np.asarray(setup["metrics"]["ent_coef"])
+    np.testing.assert_allclose(old, 0.1, rtol=1e-6)
+    assert new[0] < old[0] and new[1] > old[1]
+    np.testing.assert_allclose(np.exp(setup["new_states"].log_alpha), new, rtol=1e-6)
+
+
+def test_polyak_from_the_updated_critic(setup):
+    old, new = setup["states"], setup["new_states"]
+    tau = 0.1
+    expected = jax.tree_util.tree_map(
+        lambda t, c: (1 - tau) * t + tau * c, old.target_critic_params, new.critic_params
+    )
+    leaves_close(new.target_critic_params, expected, rtol=1e-5, atol=1e-7)
+
+
+def unstack(tree, i):
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+@pytest.mark.parametrize("algo", ["xsac", "dsac"])
+def test_update_follows_the_order_of_section_1_5(algo):
+    """Rebuild one step by hand: critic → actor against the NEW critic with the OLD α → α from the
+    actor step's entropies → Polyak from the new critic; the agent's update must match."""
+    run = vmapped_update_run(algo)
+    agent = run["agent"]
+    state, batch, key = unstack(run["states"], 0), unstack(run["batches"], 0), run["keys"][0]
+    new_state = unstack(run["new_states"], 0)
+
+    @jax.jit
+    def by_hand(state, batch, key):
+        target_key, actor_key = jax.random.split(key)
+        adam = optax.adam(1e-2)
+        critic_grads, _ = jax.grad(agent.critic_loss, has_aux=True)(
+            state.critic_params, state, batch, target_key
+        )
+        updates, _ = adam.update(critic_grads, adam.init(state.critic_params))
+        critic_params = optax.apply_updates(state.critic_params, updates)
+        with_new_critic = state.replace(critic_params=critic_params)
+        actor_grads, aux = jax.grad(agent.actor_loss, has_aux=True)(
+            state.actor_params, with_new_critic, batch, actor_key
+        )
+        updates, _ = adam.update(actor_grads, adam.init(state.actor_params))
+        actor_params = optax.apply_updates(state.actor_params, updates)
+        alpha_grad = jnp.mean(aux["entropy"]) - state.hparams.target_entropy
+        log_alpha = state.log_alpha - 1e-2 * jnp.sign(alpha_grad)  # Adam's first step is lr·sign(g)
+        target = losses.polyak_update(state.target_critic_params, critic_params, 0.1)
+        stale_grads, _ = jax.grad(agent.actor_loss, has_aux=True)(state.actor_params, state, batch, actor_key)
+        return critic_params, actor_params, log_alpha, target, actor_grads, stale_grads
+
+    critic_params, actor_params, log_alpha, target, actor_grads, stale_grads = by_hand(state, batch, key)
+    # Adam's first step is ±lr per coordinate: compare with a tolerance far below lr = 1e-2
+    leaves_close(new_state.critic_params, critic_params, rtol=1e-4, atol=1e-4)
+    leaves_close(new_state.actor_params, actor_params, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(new_state.log_alpha, log_alpha, rtol=1e-5)
+    leaves_close(new_state.target_critic_params, target, rtol=1e-4, atol=1e-5)
+    # using the pre-update critic in the actor step would have given a different actor gradient
+    differs = [
+        not np.allclose(a, b, rtol=1e-3, atol=1e-6)
+        for a, b in zip(
+            jax.tree_util.tree_leaves(stale_grads), jax.tree_util.tree_leaves(actor_grads), strict=True
+        )
+    ]
+    assert any(differs)
+
+
+@pytest.fixture(scope="module")
+def xsac_agent():
+    agent = make_agent(tiny_config("xsac"), EXAMPLE, 2)
+    return agent, agent.init(jax.random.PRNGKey(6))
+
+
+def test_xsac_objective_matches_monte_carlo_estimate():
+    """§8.6: Σ_k w_k E_ε[α log π(a_k) − Q(a_k)] − κH(w) (one sample per component, as implemented)
+    equals the brute-force E_{k~w, a~π_k}[α log π(a) − Q(a)] − κH(w) from ancestral sampling."""
+    key = jax.random.PRNGKey(7)
+    k1, k2, k3 = jax.random.split(key, 3)
+    loc = jax.random.normal(k1, (2, 3, 1, 2))
+    log_scale = jax.random.uniform(k2, (2, 3, 1, 2), minval=-1.5, maxval=0.0)
+    logits = jax.random.normal(k3, (2, 3))
+    present = jnp.array([[True, True, True], [True, True, False]])
+    pi = SquashedGaussianMixture.from_objects(loc, log_scale, logits, present)
+    alpha, kappa = 0.3, 0.1
+
+    def q_fn(a):  # (..., A) -> (2, ...): a fixed two-critic "Q"
+        base = -jnp.sum(jnp.square(a - 0.2), axis=-1)
+        return jnp.stack([base, base + 0.1 * a[..., 0]])
+
+    def implemented(k):
+        actions, log_probs = pi.sample_per_component(k)  # (2, K, A), (2, K)
+        return losses.xsac_actor_loss(pi.weights, log_probs, q_fn(actions), alpha, kappa)[0]
+
+    draws = 20000
+    impl_draws = jax.jit(jax.vmap(implemented))(jax.random.split(jax.random.PRNGKey(8), draws))
+    impl = jnp.mean(impl_draws)
+
+    def brute(k):
+        action, log_prob = pi.sample_and_log_prob(k, floor_density=True)  # k ~ w, a ~ π_k
+        return alpha * log_prob - jnp.min(q_fn(action), axis=0)
+
+    samples = jax.jit(jax.vmap(brute))(jax.random.split(jax.random.PRNGKey(9), 10 * draws))  # (10·draws, 2)
+    expected = jnp.mean(samples) - kappa * jnp.mean(pi.weights_entropy())
+    stderr = np.hypot(np.std(impl_draws) / np.sqrt(draws), np.std(samples.mean(-1)) / np.sqrt(10 * draws))
+    assert abs(float(impl - expected)) < 4 * float(stderr) + 1e-3, (impl, expected, stderr)
+    assert float(stderr) < 0.005  # the check is tight enough to catch a missing term
+
+
+def permute_slots(batch, perm):
+    return {
+        **batch,
+        "obs": {**batch["obs"], "things_set": batch["obs"]["things_set"][:, perm]},
+        "next_obs": {**batch["next_obs"], "things_set": batch["next_obs"]["things_set"][:, perm]},
+    }
+
+
+@functools.cache
+def loss_checks(algo):
+    """One jitted pass over the X agents' losses on clean / garbage-padded / permuted batches,
+    with κ and with κ = 0 (a Deep Set critic, which masks absent slots and ignores slot order)."""
+    agent = make_agent(tiny_config(algo, feature_extractor="deepset"), EXAMPLE, NUM_ACTIONS[algo])
+    state = agent.init(jax.random.PRNGKey(13))
+    clean = make_batch(jax.random.PRNGKey(14), algo)
+    batches = {"clean": clean, "dirty": make_batch(jax.random.PRNGKey(14), algo, absent_value=1e4)}
+    if algo == "xdsac":  # XSAC draws its noise per slot, so a permutation re-pairs noise and objects
+        batches["permuted"] = permute_slots(clean, jnp.array([2, 0, 1]))
+    no_kappa = state.replace(hparams=state.hparams.replace(kappa=jnp.zeros_like(state.hparams.kappa)))
+    key = jax.random.PRNGKey(15)
+
+    @jax.jit
+    def run(state, no_kappa, batches):
+        out = {}
+        for name, batch in batches.items():
+            # gradients with κ = 0, so that a gradient on φ cannot come from the κ term alone
+            (actor, aux), actor_grads = jax.value_and_grad(agent.actor_loss, has_aux=True)(
+                no_kappa.actor_params, no_kappa, batch, key
+            )
+            (critic, _), critic_grads = jax.value_and_grad(agent.critic_loss, has_aux=True)(
+                state.critic_params, state, batch, key
+            )
+            out[name] = {"actor": actor, "critic": critic, "aux": aux}
+            out[name]["grads"] = (actor_grads, critic_grads)
+        out["with_kappa"], out["with_kappa_aux"] = agent.actor_loss(state.actor_params, state, clean, key)
+        out["actor_output"] = agent.actor_output(state.actor_params, clean["obs"])
+        out["weights"] = agent.policy(state.actor_params, clean["obs"]).weights
+        if agent.is_discrete:
+            out["q"] = agent.networks.critic.apply(state.critic_params, clean["obs"])
+        return out
+
+    return run(state, no_kappa, batches)
+
+
+def mixture_logit_kernel(grads):
+    return grads["params"]["trunk"]["mixture_logit"]["kernel"]
+
+
+@pytest.mark.parametrize("algo", ["xsac", "xdsac"])
+def test_actor_gradient_reaches_the_mixture_logits(algo):
+    """§7.2.1: no stop-gradient on the weights; even with κ = 0 the φ layer is trained."""
+    out = loss_checks(algo)
+    phi = np.asarray(mixture_logit_kernel(out["clean"]["grads"][0]))
+    assert np.all(np.isfinite(phi)) and np.abs(phi).max() > 1e-6
+    for leaf in jax.tree_util.tree_leaves(out["clean"]["grads"]):
+        assert np.all(np.isfinite(leaf))
+
+
+@pytest.mark.parametrize("algo", ["xsac", "xdsac"])
+def test_kappa_term_is_minus_kappa_times_weight_entropy(algo):
+    out = loss_checks(algo)
+    weights = out["weights"]
+    h_w = -jnp.sum(weights * jnp.log(jnp.clip(weights, 1e-10, 1)), axis=-1)
+    np.testing.assert_allclose(
+        out["with_kappa"] - out["clean"]["actor"], -0.05 * jnp.mean(h_w), rtol=1e-4, atol=1e-7
+    )
+    np.testing.assert_allclose(out["with_kappa_aux"]["mixture_entropy"], jnp.mean(h_w), rtol=1e-5)
+    # absent slot 2 carries exactly zero weight
+    np.testing.assert_array_equal(weights.reshape(B, O, -1)[:, 2], 0.0)
+
+
+def test_xdsac_actor_loss_equals_explicit_sum_over_actions():
+    out = loss_checks("xdsac")
+    w = np.asarray(out["actor_output"].weights, np.float64)
+    q_obj = np.asarray(jax.nn.softmax(out["actor_output"].logits, axis=-1), np.float64)
+    q = np.asarray(out["q"], np.float64).mean(0)
+    total = 0.0
+    for b in range(B):
+        pi = sum(w[b, o] * q_obj[b, o] for o in range(O))
+        np.testing.assert_allclose(pi.sum(), 1.0, rtol=1e-6)  # §8.7
+        h_pi = -np.sum(pi * np.log(pi))
+        h_w = -sum(x * np.log(x) for x in w[b] if x > 0)
+        total += -(np.dot(pi, q[b]) + 0.1 * h_pi + 0.05 * h_w)
+    np.testing.assert_allclose(out["with_kappa"], total / B, rtol=1e-5)
+
+
+def test_permuting_object_slots_leaves_the_losses_unchanged():
+    """§8.8 at agent level (XDSAC: no sampling noise to re-order)."""
+    out = loss_checks("xdsac")
+    for name in ("actor", "critic"):
+        np.testing.assert_allclose(out["clean"][name], out["permuted"][name], rtol=1e-5)
+
+
+@pytest.mark.parametrize("algo", ["xsac", "xdsac"])
+def test_absent_slots_with_extreme_values_stay_finite_and_irrelevant(algo):
+    """§7.2.4: absent rows are masked everywhere; garbage in them changes nothing and stays finite."""
+    out = loss_checks(algo)
+    for name in ("actor", "critic"):
+        np.testing.assert_allclose(out["clean"][name], out["dirty"][name], rtol=1e-5)
+    # (loose: the networks centre the mixture logits over *all* slots, so a 1e4 garbage logit in an
+    # absent slot costs float32 precision in the present logits; exact in value, not in rounding)
+    leaves_close(out["clean"]["grads"], out["dirty"]["grads"], rtol=1e-2, atol=1e-5)
+
+
+def test_terminated_and_truncated_are_kept_separate():
+    """done = terminated only; truncated transitions are dropped ("drop") or bootstrapped ("bootstrap")."""
+    algo = "dsac"
+    batch = make_batch(jax.random.PRNGKey(23), algo)
+    drop = make_agent(tiny_config(algo), EXAMPLE, 4)
+    boot = make_agent(tiny_config(algo, truncation="bootstrap"), EXAMPLE, 4)
+    state = drop.init(jax.random.PRNGKey(24))
+    truncated = {**batch, "truncated": jnp.arange(B) == 1}
+    changed = {**truncated, "reward": truncated["reward"].at[1].add(50.0)}
+    terminal = {**batch, "terminated": jnp.ones(B, bool)}
+
+    @jax.jit
+    def run(state):
+        key = jax.random.PRNGKey(0)
+        losses_ = {}
+        for name, agent in (("drop", drop), ("boot", boot)):
+            for tag, b in (("truncated", truncated), ("changed", changed)):
+                losses_[name, tag] = agent.critic_loss(state.critic_params, state, b, key)[0]
+        return losses_, drop.critic_loss(state.critic_params, state, terminal, key)[1]
+
+    out, aux = run(state)
+    # "drop": the truncated transition has no influence on the critic loss
+    np.testing.assert_allclose(out["drop", "truncated"], out["drop", "changed"], rtol=1e-6)
+    # "bootstrap": it counts (and is not masked like a terminal)
+    assert float(out["boot", "changed"]) > float(out["boot", "truncated"]) + 1.0
+    # terminated transitions regress on the bare reward: all-terminal batch ⇒ target = reward
+    np.testing.assert_allclose(aux["q_val_min"], jnp.min(batch["reward"]), rtol=1e-6)
+    np.testing.assert_allclose(aux["q_val_max"], jnp.max(batch["reward"]), rtol=1e-6)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_act_modes(algo):
+    agent = make_agent(tiny_config(algo, epsilon_random=0.0), EXAMPLE, NUM_ACTIONS[algo])
+    state = agent.init(jax.random.PRNGKey(25))
+    obs = make_batch(jax.random.PRNGKey(26), algo, batch=64)["obs"]
+
+    @jax.jit
+    def act_all(state, obs):
+        keys = (jax.random.PRNGKey(1), jax.random.PRNGKey(2))
+        out = {mode: [agent.act(k, state, obs, mode) for k in keys] for mode in ("train", "eval")}
+        out["single"] = agent.act(keys[0], state, jax.tree_util.tree_map(lambda x: x[0], obs), "train")
+        return out
+
+    out = act_all(state, obs)
+    discrete = algo in ("dsac", "xdsac")
+    for mode in ("train", "eval"):
+        a1, a2 = out[mode]
+        if discrete:
+            assert a1.shape == (64,) and a1.dtype == jnp.int32
+            assert np.all((a1 >= 0) & (a1 < NUM_ACTIONS[algo]))
+        else:
+            assert a1.shape == (64, 2) and np.all(np.abs(a1) <= 1)
+        stochastic = mode == "train" or algo == "xsac"  # §3.8: only XSAC evaluates stochastically
+        assert (not np.array_equal(a1, a2)) == stochastic, (mode, algo)
+    assert out["single"].shape == (() if discrete else (2,))
+    with pytest.raises(ValueError, match="train"):
+        agent.act(jax.random.PRNGKey(0), state, obs, "greedy")
+    assert "deterministic" in ACT_MODES
+
+
+@pytest.mark.slow
+def test_discrete_exploration_epsilon():
+    agent = make_agent(tiny_config("xdsac", epsilon_random=1.0), EXAMPLE, 4)
+    state = agent.init(jax.random.PRNGKey(27))
+    obs = make_batch(jax.random.PRNGKey(28), "xdsac", batch=400)["obs"]
+
+    @jax.jit
+    def run(state, obs):
+        train = agent.act(jax.random.PRNGKey(1), state, obs, "train")
+        greedy = agent.act(jax.random.PRNGKey(1), state, obs, "eval")  # never explores
+        return train, greedy, agent.policy(state.actor_params, obs).mode()
+
+    train, greedy, mode = run(state, obs)
+    counts = np.bincount(np.asarray(train), minlength=4)
+    assert counts.min() > 60  # uniform over 4 actions
+    np.testing.assert_array_equal(greedy, mode)
+
+
+def test_batch_layout_errors_are_clear():
+    agent = make_agent(tiny_config("sac"), EXAMPLE, 2)
+    state = agent.init(jax.random.PRNGKey(0))
+    batch = make_batch(jax.random.PRNGKey(1), "sac")
+    with pytest.raises(ValueError, match="missing"):
+        agent.update(jax.random.PRNGKey(0), state, {k: v for k, v in batch.items() if k != "truncated"})
+    with pytest.raises(ValueError, match="action"):
+        agent.update(jax.random.PRNGKey(0), state, {**batch, "action": batch["action"][:, :1]})
+    with pytest.raises(ValueError, match="things_set"):
+        bad = {**batch, "obs": {**batch["obs"], "things_set": batch["obs"]["things_set"][:, :2]}}
+        agent.update(jax.random.PRNGKey(0), state, bad)
+    with pytest.raises(ValueError, match="unbatched"):
+        make_agent(tiny_config("sac"), {"state": jnp.zeros((1, S)), "things_set": jnp.zeros((1, O, F))}, 2)
+    with pytest.raises(TypeError):
+        make_agent({"algo": "sac"}, EXAMPLE, 2)
+
+
+def test_agent_state_is_a_pytree_with_traced_hparams(xsac_agent):
+    _, state = xsac_agent
+    assert isinstance(state, AgentState)
+    leaves = jax.tree_util.tree_leaves(state.hparams)
+    assert len(leaves) == 7 and all(leaf.shape == () for leaf in leaves)
+    np.testing.assert_allclose(state.hparams.target_entropy, -2.0)  # −A default for XSAC
+    np.testing.assert_allclose(state.hparams.alpha_lr, state.hparams.critic_lr)
+    assert {f.name for f in dataclasses.fields(HyperParams)} == set(TRACED_FIELDS)
+
+
+@pytest.mark.slow
+def test_update_runs_in_float64():
+    with jax.enable_x64(True):
+        agent = make_agent(tiny_config("dsac"), {k: v.astype(jnp.float64) for k, v in EXAMPLE.items()}, 4)
+        state = agent.init(jax.random.PRNGKey(0))
+        batch = make_batch(jax.random.PRNGKey(1), "dsac")
+        new_state, metrics = jax.jit(agent.update)(jax.random.PRNGKey(2), state, batch)
+        assert new_state.log_alpha.dtype == jnp.float64
+        assert jax.tree_util.tree_leaves(new_state.actor_params)[0].dtype == jnp.float64
+        assert all(np.isfinite(v) for v in metrics.values())

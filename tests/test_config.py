@@ -1,0 +1,141 @@
+"""Agent configs: the paper presets of spec §5.7 / §4.7 and validation with clear errors."""
+
+import math
+
+import pytest
+
+from xrl_jax.config import (
+    ALGOS,
+    ENVS,
+    PAPER,
+    AgentConfig,
+    apply_overrides,
+    paper_config,
+    preset,
+)
+
+
+def test_every_paper_combination_exists():
+    assert set(PAPER) == {(e, a) for e in ENVS for a in ALGOS}
+    for (env, algo), cfg in PAPER.items():
+        assert cfg == paper_config(env, algo) and cfg.algo == algo
+
+
+@pytest.mark.parametrize(
+    "env, algo, lr, actor_depth, critic_depth, extractor",
+    [
+        ("country_road", "sac", 1e-4, 2, 2, "deepset"),
+        ("country_road", "dsac", 1e-4, 2, 2, "deepset"),
+        ("country_road", "xsac", 1e-4, 3, 2, "deepset"),
+        ("country_road", "xdsac", 1e-4, 3, 2, "deepset"),
+        ("tracking", "sac", 3e-4, 3, 3, "flat_pe"),
+        ("tracking", "dsac", 1e-4, 3, 3, "flat_pe"),
+        ("tracking", "xsac", 3e-4, 3, 3, "flat_pe"),
+        ("tracking", "xdsac", 1e-4, 3, 3, "flat_pe"),
+    ],
+)
+def test_paper_table(env, algo, lr, actor_depth, critic_depth, extractor):
+    cfg = paper_config(env, algo)
+    assert cfg.actor_lr == cfg.critic_lr == lr
+    assert cfg.resolved_alpha_lr() == lr  # α uses the critic lr
+    assert (cfg.actor_depth, cfg.critic_depth, cfg.actor_width, cfg.critic_width) == (
+        actor_depth,
+        critic_depth,
+        256,
+        256,
+    )
+    assert cfg.feature_extractor == extractor and cfg.fe_width == 128 and cfg.fourier_scale == 30.0
+    assert (cfg.gamma, cfg.tau, cfg.init_alpha, cfg.n_critics) == (0.95, 0.005, 0.1, 2)
+    assert cfg.critic_loss == "huber" and cfg.clip_norm is None and cfg.auto_alpha
+    if cfg.is_mixture:
+        assert cfg.kappa == 1e-3 and cfg.components_per_object == 1 and cfg.weight_depth is None
+    if cfg.is_discrete:
+        assert cfg.resolved_target_entropy(12) == 1.24
+        assert cfg.resolved_epsilon_random() == 0.05
+    else:
+        assert cfg.resolved_target_entropy(3) == -3.0
+        assert cfg.resolved_epsilon_random() == 0.0
+    expected_log_std_min = -5.0 if algo == "xsac" else -20.0
+    assert cfg.resolved_log_std_min() == expected_log_std_min
+
+
+def test_target_entropy_defaults_when_unset():
+    assert AgentConfig(algo="dsac").resolved_target_entropy(12) == pytest.approx(0.9 * math.log(12))
+    assert AgentConfig(algo="xdsac").resolved_target_entropy(12) == pytest.approx(0.5 * math.log(12))
+    assert AgentConfig(algo="xsac").resolved_target_entropy(2) == -2.0
+    # an explicit 0.0 is honoured (the reference's truthiness quirk is not reproduced)
+    assert AgentConfig(algo="xdsac", target_entropy=0.0).resolved_target_entropy(12) == 0.0
+
+
+def test_smoke_preset_is_tiny_with_paper_optimisation():
+    cfg = preset("smoke", "tracking", "xsac")
+    assert cfg.actor_width < 64 and cfg.actor_lr == 3e-4 and cfg.gamma == 0.95
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"algo": "ppo"}, "valid algos: sac, dsac, xsac, xdsac"),
+        ({"actor_lr": -1e-4}, "actor_lr must be positive"),
+        ({"critic_lr": 0.0}, "critic_lr must be positive"),
+        ({"alpha_lr": float("nan")}, "alpha_lr must be a finite number"),
+        ({"gamma": 1.5}, "gamma must lie in"),
+        ({"tau": 0.0}, "tau must lie in"),
+        ({"kappa": float("inf")}, "kappa must be a finite number"),
+        ({"init_alpha": -0.1}, "init_alpha must be positive"),
+        ({"actor_width": 0}, "actor_width must be a positive integer"),
+        ({"feature_extractor": "cnn"}, "valid: deepset, flat_pe"),
+        ({"critic_loss": "l1"}, "valid: huber, l2"),
+        ({"truncation": "ignore"}, "valid: drop, bootstrap"),
+        ({"algo": "xsac", "actor_depth": 2, "weight_depth": 3}, "weight_depth"),
+        ({"algo": "xdsac", "duelling": False}, "duelling"),
+        ({"epsilon_random": 2.0}, "epsilon_random"),
+        ({"log_std_min": 3.0}, "log_std_min"),
+    ],
+)
+def test_validation_errors_are_clear(changes, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+        AgentConfig(**changes)
+
+
+def test_negative_kappa_is_allowed_for_the_fig8_sweep():
+    assert AgentConfig(algo="xdsac", kappa=-1e-3).kappa == -1e-3
+
+
+def test_unknown_preset_env_or_field():
+    with pytest.raises(ValueError, match="valid presets: paper, smoke"):
+        preset("huge", "tracking", "sac")
+    with pytest.raises(ValueError, match="valid envs"):
+        preset("paper", "moon", "sac")
+    with pytest.raises(ValueError, match="valid algos"):
+        paper_config("tracking", "td3")
+    with pytest.raises(ValueError, match="unknown field"):
+        paper_config("tracking", "sac").replace(learning_rate=1.0)
+
+
+def test_overrides_from_text():
+    cfg = apply_overrides(
+        paper_config("country_road", "xdsac"),
+        {
+            "kappa": "-0.01",
+            "auto_alpha": "false",
+            "clip_norm": "none",
+            "actor_width": "64",
+            "critic_loss": "l2",
+        },
+    )
+    assert cfg.kappa == -0.01 and cfg.auto_alpha is False and cfg.clip_norm is None
+    assert cfg.actor_width == 64 and cfg.critic_loss == "l2"
+    with pytest.raises(ValueError, match="cannot parse"):
+        apply_overrides(cfg, {"actor_width": "wide"})
+    with pytest.raises(ValueError, match="unknown field"):
+        apply_overrides(cfg, {"lr": "1"})
+    with pytest.raises(ValueError, match="actor_lr must be positive"):
+        apply_overrides(cfg, {"actor_lr": "-1"})
+
+
+def test_configs_are_frozen_and_hashable():
+    cfg = paper_config("tracking", "xsac")
+    with pytest.raises(AttributeError):
+        cfg.kappa = 0.5  # type: ignore[misc]
+    assert hash(cfg) == hash(paper_config("tracking", "xsac"))

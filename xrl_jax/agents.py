@@ -1,0 +1,502 @@
+"""SAC, discrete SAC and their explainable mixture variants XSAC / XDSAC as pure-function agents.
+
+An :class:`Agent` is a small frozen object (static: config, networks, sizes) with four pure
+methods, all jittable and vmappable over a leading seed axis of the state:
+
+* ``init(key, obs_example=None) -> AgentState``
+* ``act(key, state, obs, mode="train") -> action`` (``mode`` is static: "train", "eval", "deterministic")
+* ``update(key, state, batch) -> (state, metrics)``: one train step in the order of spec §1.5
+* ``policy(actor_params, obs)``: the action distribution (a ``distributions`` mixture), i.e. the
+  explanation for the X agents.
+
+Batch layout expected by ``update`` (one leading batch axis B; the buffer produces it)::
+
+    {
+      "obs":        {"state": (B, S), "<name>_set": (B, O, F_obj)},   # float
+      "action":     (B, A) float in [-1, 1] (SAC, XSAC) or (B,) int (DSAC, XDSAC),
+      "reward":     (B,) float,
+      "next_obs":   same structure as "obs",
+      "terminated": (B,) bool or float (1 = true terminal: no bootstrap),
+      "truncated":  (B,) bool or float (time limit etc.),
+    }
+
+Terminated and truncated stay separate. The bootstrap mask is 1 − terminated. With
+``config.truncation == "drop"`` (default, the paper's choice) truncated transitions get weight 0
+in the critic loss; the trainer normally does not store them at all (§5.3), in which case this
+changes nothing. With ``"bootstrap"`` they are kept and bootstrapped (needs the true final
+``next_obs``, not an auto-reset observation).
+
+Traced hyper-parameters (learning rates, γ, τ, κ, target entropy) live in ``AgentState.hparams``
+so that a sweep can vmap over them; network sizes and switches are static (the config).
+
+Deviations from textbook SAC that the reference makes and this module follows (spec §7.2):
+Huber critic loss; discrete actor on the *mean* of the critics, discrete target on the
+per-action *minimum*; XSAC actor samples every component and evaluates each sample under the
+full mixture; κ·H(w) subtracted; α learned on log α with Adam at the critic lr from α₀ = 0.1,
+using the actor step's pre-update log-probs; the update order critic → actor (new critic) → α →
+Polyak; ε = 5 % random actions for the discrete agents at training time; XSAC evaluated
+stochastically, XDSAC greedily. Each is marked ``§7.2.n`` where it happens.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from xrl_jax import losses
+from xrl_jax.config import AgentConfig
+from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture, squashed_gaussian
+from xrl_jax.networks import (
+    NetworkConfig,
+    Networks,
+    ObservationShape,
+    find_set_key,
+    make_networks,
+)
+
+Array = jax.Array
+ACT_MODES = ("train", "eval", "deterministic")
+BATCH_KEYS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
+
+
+@struct.dataclass
+class HyperParams:
+    """Traced optimisation constants (scalars; vmappable for sweeps, e.g. κ in paper Fig. 8)."""
+
+    actor_lr: Array
+    critic_lr: Array
+    alpha_lr: Array
+    gamma: Array
+    tau: Array
+    kappa: Array
+    target_entropy: Array
+
+
+@struct.dataclass
+class AgentState:
+    """Everything that changes during training; a pytree with an optional leading seed axis."""
+
+    actor_params: Any
+    critic_params: Any
+    target_critic_params: Any
+    log_alpha: Array
+    actor_opt_state: Any
+    critic_opt_state: Any
+    alpha_opt_state: Any
+    step: Array
+    hparams: HyperParams
+
+    @property
+    def alpha(self) -> Array:
+        return jnp.exp(self.log_alpha)
+
+
+def _float(x) -> Array:
+    return jnp.asarray(x, dtype=jnp.result_type(float))
+
+
+def make_hparams(config: AgentConfig, action_size: int) -> HyperParams:
+    """The traced part of a config as a pytree of scalars (default float dtype)."""
+    return HyperParams(
+        actor_lr=_float(config.actor_lr),
+        critic_lr=_float(config.critic_lr),
+        alpha_lr=_float(config.resolved_alpha_lr()),
+        gamma=_float(config.gamma),
+        tau=_float(config.tau),
+        kappa=_float(config.kappa),
+        target_entropy=_float(config.resolved_target_entropy(action_size)),
+    )
+
+
+def observation_shape(obs_example: Mapping[str, Any]) -> ObservationShape:
+    """Read the fixed layout of one *unbatched* observation {"state": (S,), "<x>_set": (O, F)}."""
+    set_key = find_set_key(obs_example)
+    objects, state = obs_example[set_key], obs_example["state"]
+    if len(objects.shape) != 2 or len(state.shape) != 1:
+        raise ValueError(
+            f"obs_example must be one unbatched observation: set (O, F) and state (S,), "
+            f"got {tuple(objects.shape)} and {tuple(state.shape)}"
+        )
+    return ObservationShape(set_key, int(objects.shape[0]), int(objects.shape[1]), int(state.shape[0]))
+
+
+def _network_config(config: AgentConfig, obs_shape: ObservationShape, action_size: int) -> NetworkConfig:
+    return NetworkConfig(
+        env="custom",
+        algo=config.algo,
+        obs_shape=obs_shape,
+        actor_width=config.actor_width,
+        actor_depth=config.actor_depth,
+        critic_width=config.critic_width,
+        critic_depth=config.critic_depth,
+        weight_depth=config.actor_depth if config.weight_depth is None else config.weight_depth,
+        num_components=config.components_per_object,
+        num_critics=config.n_critics,
+        duelling=config.duelling,
+        action_dim=action_size if not config.is_discrete else 1,
+        num_actions=action_size if config.is_discrete else 1,
+        extractor=config.feature_extractor,
+        fe_width=config.fe_width,
+        fourier_scale=config.fourier_scale,
+        pe_freqs=config.pe_freqs,
+    )
+
+
+def _adam(clip_norm: float | None) -> optax.GradientTransformation:
+    """Adam without the learning-rate scaling (applied from the traced hparams); optional clipping."""
+    if clip_norm is None:
+        return optax.scale_by_adam()
+    return optax.chain(optax.clip_by_global_norm(clip_norm), optax.scale_by_adam())
+
+
+def _as_float_mask(x: Array) -> Array:
+    return jnp.asarray(x).astype(jnp.result_type(float))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Agent:
+    """One of SAC / DSAC / XSAC / XDSAC. Build with :func:`make_agent`; all methods are pure."""
+
+    config: AgentConfig
+    networks: Networks
+    obs_shape: ObservationShape
+    action_size: int  # A (continuous) or N (discrete)
+
+    # ---- static helpers ---------------------------------------------------------------------
+    @property
+    def algo(self) -> str:
+        return self.config.algo
+
+    @property
+    def is_discrete(self) -> bool:
+        return self.config.is_discrete
+
+    @property
+    def _actor_tx(self) -> optax.GradientTransformation:
+        # Reference: SAC clips only the critic; DSAC/XSAC/XDSAC clip both (§1.4). Never α.
+        return _adam(None if self.algo == "sac" else self.config.clip_norm)
+
+    @property
+    def _critic_tx(self) -> optax.GradientTransformation:
+        return _adam(self.config.clip_norm)
+
+    @property
+    def _alpha_tx(self) -> optax.GradientTransformation:
+        return _adam(None)
+
+    def dummy_observation(self, batch_shape: tuple[int, ...] = ()) -> dict[str, Array]:
+        return self.networks.dummy_observation(batch_shape)
+
+    # ---- init -------------------------------------------------------------------------------
+    def init(
+        self, key: Array, obs_example: Mapping[str, Array] | None = None, hparams: HyperParams | None = None
+    ) -> AgentState:
+        """Fresh parameters, optimiser states, log α = log α₀ and step 0.
+
+        `obs_example` (one unbatched observation; default zeros of the agent's layout) only fixes
+        shapes. Actor and critic use independent keys (the reference's shared-key quirk for
+        DSAC/X agents is not reproduced, §2.2). `hparams` overrides the config's traced values.
+        """
+        if obs_example is None:
+            obs_example = self.dummy_observation()
+        elif observation_shape(obs_example) != self.obs_shape:
+            raise ValueError(
+                f"obs_example layout {observation_shape(obs_example)} differs from the agent's "
+                f"{self.obs_shape}"
+            )
+        actor_key, critic_key = jax.random.split(key)
+        actor_params = self.networks.actor.init(actor_key, obs_example)
+        if self.is_discrete:
+            critic_params = self.networks.critic.init(critic_key, obs_example)
+        else:
+            critic_params = self.networks.critic.init(critic_key, obs_example, self.networks.dummy_action())
+        if hparams is None:
+            hparams = make_hparams(self.config, self.action_size)
+        log_alpha = _float(math.log(self.config.init_alpha))
+        return AgentState(
+            actor_params=actor_params,
+            critic_params=critic_params,
+            target_critic_params=jax.tree_util.tree_map(jnp.array, critic_params),
+            log_alpha=log_alpha,
+            actor_opt_state=self._actor_tx.init(actor_params),
+            critic_opt_state=self._critic_tx.init(critic_params),
+            alpha_opt_state=self._alpha_tx.init(log_alpha),
+            step=jnp.zeros((), jnp.int32),
+            hparams=hparams,
+        )
+
+    # ---- policy -----------------------------------------------------------------------------
+    def policy(
+        self, actor_params: Any, obs: Mapping[str, Array]
+    ) -> SquashedGaussianMixture | CategoricalMixture:
+        """π(·|s) as a mixture distribution (batch axes of `obs` preserved).
+
+        SAC: a one-component squashed Gaussian; DSAC: a one-component categorical mixture;
+        XSAC / XDSAC: the per-object mixtures whose ``weights`` are the explanation.
+        """
+        return self.policy_from_output(self.networks.actor.apply(actor_params, obs))
+
+    def policy_from_output(self, out: Any) -> SquashedGaussianMixture | CategoricalMixture:
+        """The distribution of :meth:`policy` from an already computed actor output."""
+        cfg = self.config
+        if self.algo == "sac":
+            return squashed_gaussian(out.mean, out.log_std, (cfg.resolved_log_std_min(), cfg.log_std_max))
+        if self.algo == "dsac":
+            return CategoricalMixture.create(out[..., None, :])
+        logits = None if cfg.uniform_mixture else out.mixture_logits
+        if self.algo == "xsac":
+            return SquashedGaussianMixture.from_objects(
+                out.means, out.log_stds, logits, out.present, (cfg.resolved_log_std_min(), cfg.log_std_max)
+            )
+        return CategoricalMixture.create(out.logits, logits, out.present)
+
+    def actor_output(self, actor_params: Any, obs: Mapping[str, Array]) -> Any:
+        """Raw actor outputs (``networks`` dataclasses), e.g. for explanation figures."""
+        return self.networks.actor.apply(actor_params, obs)
+
+    def random_action(self, key: Array, batch_shape: tuple[int, ...] = ()) -> Array:
+        """Uniform random action (warm-up, ε-exploration)."""
+        if self.is_discrete:
+            return jax.random.randint(key, batch_shape, 0, self.action_size, jnp.int32)
+        return jax.random.uniform(key, (*batch_shape, self.action_size), jnp.result_type(float), -1.0, 1.0)
+
+    def act(self, key: Array, state: AgentState, obs: Mapping[str, Array], mode: str = "train") -> Array:
+        """An action for `obs` (any leading batch axes).
+
+        * "train": stochastic; XSAC / XDSAC use the fast path (sample the object, then run only its
+          head, §3.7); discrete agents take a uniform random action with probability ε = 0.05
+          (§7.2.9, `config.epsilon_random`).
+        * "eval": the reference's evaluation policy (§3.8): SAC tanh(μ), DSAC argmax, XSAC
+          **stochastic** fast sample (§7.2.5), XDSAC argmax of the mixture probabilities.
+        * "deterministic": greedy for every agent (XSAC: the approximate mode of §3.9, not what
+          the paper's numbers used).
+        """
+        if mode not in ACT_MODES:
+            raise ValueError(f"unknown act mode {mode!r}; valid modes: {', '.join(ACT_MODES)}")
+        params = state.actor_params
+        algo = self.algo
+        sample_key, explore_key, coin_key = jax.random.split(key, 3)
+        greedy = mode == "deterministic" or (mode == "eval" and algo != "xsac")
+        if greedy:
+            if algo == "sac":
+                return jnp.tanh(self.networks.actor.apply(params, obs).mean)
+            if algo == "dsac":
+                return jnp.argmax(self.networks.actor.apply(params, obs), axis=-1).astype(jnp.int32)
+            if algo == "xsac":
+                return self.policy(params, obs).approximate_mode()
+            return self.policy(params, obs).mode().astype(jnp.int32)
+        if self.config.is_mixture and not self.config.uniform_mixture:
+            action = self.networks.actor.apply(
+                params, obs, sample_key, method=self.networks.actor.sample_fast
+            ).action
+        else:
+            action = self.policy(params, obs).sample(sample_key)
+        if self.is_discrete:
+            action = action.astype(jnp.int32)
+            eps = self.config.resolved_epsilon_random()
+            if mode == "train" and eps > 0:
+                explore = jax.random.uniform(coin_key, action.shape) < eps
+                action = jnp.where(explore, self.random_action(explore_key, action.shape), action)
+        return action
+
+    # ---- losses (params + state + batch + key -> (loss, aux)) -------------------------------
+    def critic_loss(
+        self, critic_params: Any, state: AgentState, batch: Mapping[str, Any], key: Array
+    ) -> tuple[Array, dict[str, Array]]:
+        """Critic loss with the TD target of §1.2 computed from `state` (pre-update actor, target
+        critics, pre-update α); only `critic_params` is differentiated."""
+        hp = state.hparams
+        alpha = jax.lax.stop_gradient(state.alpha)
+        reward = jnp.asarray(batch["reward"])
+        terminated = _as_float_mask(batch["terminated"])
+        truncated = _as_float_mask(batch["truncated"])
+        discount = hp.gamma * (1.0 - terminated)  # §7.2.8: done = terminated only
+        weight = 1.0 - truncated if self.config.truncation == "drop" else None
+        next_pi = self.policy(state.actor_params, batch["next_obs"])
+        critic = self.networks.critic
+        if self.is_discrete:
+            next_q = critic.apply(state.target_critic_params, batch["next_obs"])
+            target = losses.discrete_td_target(reward, discount, next_q, next_pi.probs(), alpha)
+            q_all = critic.apply(critic_params, batch["obs"])
+            action = jnp.asarray(batch["action"]).astype(jnp.int32)
+            index = jnp.broadcast_to(action[None, :, None], (*q_all.shape[:-1], 1))
+            q = jnp.take_along_axis(q_all, index, axis=-1)[..., 0]
+        else:
+            # one fresh next-action sample per transition from the full (pre-update) policy (§3.3)
+            next_action, next_log_prob = next_pi.sample_and_log_prob(key)
+            next_q = critic.apply(state.target_critic_params, batch["next_obs"], next_action)
+            target = losses.continuous_td_target(reward, discount, next_q, next_log_prob, alpha)
+            q = critic.apply(critic_params, batch["obs"], batch["action"])
+        loss, aux = losses.critic_loss(q, target, self.config.critic_loss, weight)
+        aux = {**aux, "q_val_min": jnp.min(target), "q_val_max": jnp.max(target)}
+        return loss, aux
+
+    def actor_loss(
+        self, actor_params: Any, state: AgentState, batch: Mapping[str, Any], key: Array
+    ) -> tuple[Array, dict[str, Array]]:
+        """Actor loss with the critics in `state` (the **updated** online critics in `update`,
+        §7.2.7) and the pre-update α; only `actor_params` is differentiated."""
+        hp = state.hparams
+        alpha = state.alpha
+        obs = batch["obs"]
+        critic_params = jax.lax.stop_gradient(state.critic_params)
+        critic = self.networks.critic
+        out = self.networks.actor.apply(actor_params, obs)
+        pi = self.policy_from_output(out)
+        if self.algo == "sac":
+            action, log_prob = pi.sample_and_log_prob(key)  # reparameterised (differentiable in μ, σ)
+            q = critic.apply(critic_params, obs, action)
+            return losses.sac_actor_loss(log_prob, q, alpha)
+        if self.algo == "dsac":
+            q = critic.apply(critic_params, obs)
+            return losses.dsac_actor_loss(pi.probs(), q, alpha)  # §7.2.2: mean of critics
+        if self.algo == "xsac":
+            # §7.2.1: one reparameterised sample per component, each scored under the full mixture
+            # (floored density), Q = min of the updated critics, weights keep their gradient.
+            actions, log_probs = pi.sample_per_component(key, floor_density=True)
+            q = critic.apply(critic_params, obs, actions)  # F(s) once, heads on all K actions
+            return losses.xsac_actor_loss(pi.weights, log_probs, q, alpha, hp.kappa)
+        q = critic.apply(critic_params, obs)
+        loss, aux = losses.xdsac_actor_loss(pi.probs(), pi.weights, q, alpha, hp.kappa)
+        present = out.present.astype(loss.dtype)
+        centred = jnp.where(out.present, out.mixture_logits, 0.0)
+        aux["mean_mixture_logits"] = jax.lax.stop_gradient(
+            jnp.sum(centred) / jnp.maximum(jnp.sum(present), 1.0)
+        )
+        return loss, aux
+
+    # ---- one train step ---------------------------------------------------------------------
+    def update(
+        self, key: Array, state: AgentState, batch: Mapping[str, Any]
+    ) -> tuple[AgentState, dict[str, Array]]:
+        """One gradient step in the order of spec §1.5 (§7.2.7):
+
+        1. TD target with the pre-update actor, target critics and pre-update α;
+        2. critic Adam step; 3. actor Adam step against the **updated** critic, pre-update α;
+        4. α Adam step from step 3's entropy estimates (auto-α only); 5. Polyak from the new critic.
+        """
+        self.check_batch(batch)
+        hp = state.hparams
+        target_key, actor_key = jax.random.split(key)
+
+        (critic_loss, critic_aux), critic_grads = jax.value_and_grad(self.critic_loss, has_aux=True)(
+            state.critic_params, state, batch, target_key
+        )
+        critic_params, critic_opt_state = _adam_step(
+            self._critic_tx, critic_grads, state.critic_opt_state, state.critic_params, hp.critic_lr
+        )
+        state_new_critic = state.replace(critic_params=critic_params)
+
+        (actor_loss, actor_aux), actor_grads = jax.value_and_grad(self.actor_loss, has_aux=True)(
+            state.actor_params, state_new_critic, batch, actor_key
+        )
+        actor_params, actor_opt_state = _adam_step(
+            self._actor_tx, actor_grads, state.actor_opt_state, state.actor_params, hp.actor_lr
+        )
+
+        metrics: dict[str, Array] = {}
+        log_alpha, alpha_opt_state = state.log_alpha, state.alpha_opt_state
+        if self.config.auto_alpha:
+            # §7.2.6: log α, Adam at the critic lr, entropies from the pre-update actor (step 3).
+            (alpha_loss, _), alpha_grad = jax.value_and_grad(losses.entropy_coef_loss, has_aux=True)(
+                state.log_alpha, actor_aux["entropy"], hp.target_entropy
+            )
+            log_alpha, alpha_opt_state = _adam_step(
+                self._alpha_tx, alpha_grad, state.alpha_opt_state, state.log_alpha, hp.alpha_lr
+            )
+            metrics["loss_ent_coef"] = alpha_loss
+
+        target_critic_params = losses.polyak_update(state.target_critic_params, critic_params, hp.tau)
+
+        new_state = state.replace(
+            actor_params=actor_params,
+            critic_params=critic_params,
+            target_critic_params=target_critic_params,
+            log_alpha=log_alpha,
+            actor_opt_state=actor_opt_state,
+            critic_opt_state=critic_opt_state,
+            alpha_opt_state=alpha_opt_state,
+            step=state.step + 1,
+        )
+        metrics.update({k: v for k, v in critic_aux.items()})
+        metrics.update({k: v for k, v in actor_aux.items() if k != "entropy"})
+        metrics["loss_critic"] = critic_loss
+        metrics["loss_actor"] = actor_loss
+        metrics["grad_norm_critic"] = optax.tree.norm(critic_grads)
+        metrics["grad_norm_actor"] = optax.tree.norm(actor_grads)
+        metrics["ent_coef"] = jnp.exp(log_alpha)  # post-update α for every agent (§7.4)
+        return new_state, metrics
+
+    # ---- input checks -----------------------------------------------------------------------
+    def check_batch(self, batch: Mapping[str, Any]) -> None:
+        """Raise a clear error for a batch that does not follow the documented layout."""
+        missing = [k for k in BATCH_KEYS if k not in batch]
+        if missing:
+            raise ValueError(f"batch is missing {missing}; expected keys {list(BATCH_KEYS)}")
+        reward = jnp.shape(batch["reward"])
+        if len(reward) != 1:
+            raise ValueError(f"batch['reward'] must have shape (B,), got {reward}")
+        size = reward[0]
+        for name in ("terminated", "truncated"):
+            if jnp.shape(batch[name]) != (size,):
+                raise ValueError(f"batch[{name!r}] must have shape ({size},), got {jnp.shape(batch[name])}")
+        action_shape = (size,) if self.is_discrete else (size, self.action_size)
+        if jnp.shape(batch["action"]) != action_shape:
+            raise ValueError(
+                f"batch['action'] must have shape {action_shape} for {self.algo}, "
+                f"got {jnp.shape(batch['action'])}"
+            )
+        expected = {
+            "state": (size, self.obs_shape.state_dim),
+            self.obs_shape.set_key: (size, self.obs_shape.num_objects, self.obs_shape.object_features),
+        }
+        for name in ("obs", "next_obs"):
+            obs = batch[name]
+            if set(obs) != set(expected):
+                raise ValueError(f"batch[{name!r}] must have keys {sorted(expected)}, got {sorted(obs)}")
+            for k, shape in expected.items():
+                if jnp.shape(obs[k]) != shape:
+                    raise ValueError(
+                        f"batch[{name!r}][{k!r}] must have shape {shape}, got {jnp.shape(obs[k])}"
+                    )
+
+
+def _adam_step(tx: optax.GradientTransformation, grads, opt_state, params, lr: Array):
+    """params ← params − lr·Adam(grads): optax.adam with a traced learning rate."""
+    updates, opt_state = tx.update(grads, opt_state, params)
+    params = jax.tree_util.tree_map(lambda p, u: p - lr * u, params, updates)
+    return params, opt_state
+
+
+def make_agent(config: AgentConfig, obs_example: Mapping[str, Any], action_size: int) -> Agent:
+    """Build an agent for observations shaped like `obs_example` (one unbatched observation) and
+    `action_size` = A (continuous: SAC, XSAC) or N (discrete: DSAC, XDSAC)."""
+    if not isinstance(config, AgentConfig):
+        raise TypeError(f"config must be an AgentConfig, got {type(config).__name__}")
+    if not isinstance(action_size, int) or action_size < 1:
+        raise ValueError(f"action_size must be a positive integer, got {action_size!r}")
+    obs_shape = observation_shape(obs_example)
+    networks = make_networks(_network_config(config, obs_shape, action_size))
+    log_std_range = (config.resolved_log_std_min(), config.log_std_max)
+    if config.algo in ("sac", "xsac"):  # the networks default to the spec ranges; honour overrides
+        networks = dataclasses.replace(networks, actor=networks.actor.clone(log_std_range=log_std_range))
+    return Agent(config=config, networks=networks, obs_shape=obs_shape, action_size=action_size)
+
+
+__all__ = [
+    "ACT_MODES",
+    "BATCH_KEYS",
+    "Agent",
+    "AgentState",
+    "HyperParams",
+    "make_agent",
+    "make_hparams",
+    "observation_shape",
+]

@@ -1,0 +1,253 @@
+"""Pure loss functions of SAC, discrete SAC, XSAC and XDSAC (spec/algorithms.md §1–§3).
+
+Everything here works on arrays that the networks already produced, so each equation can be
+checked in closed form on tiny hand-made inputs. The agents (``agents.py``) wire networks to
+these functions and take the gradients. Shape conventions:
+
+* ``q``: critic outputs stacked on a leading critic axis, ``(n_critics, B)`` for a continuous
+  critic, ``(n_critics, B, N)`` for a discrete one, ``(n_critics, B, K)`` for the XSAC critic
+  evaluated on all K component actions.
+* ``discount``: per-transition bootstrap factor γ·(1 − terminated) (or γ·mask in general): the
+  caller decides which transitions bootstrap, so terminated and truncated stay separate.
+* ``weight``: optional per-transition loss weight (1 = use, 0 = ignore), e.g. to drop truncated
+  transitions that were stored anyway.
+
+All functions return ``(loss, metrics)`` where metrics is a flat dict of scalars, or plain arrays
+for the helpers.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+PROB_CLIP = 1e-10  # log(clip(p, 1e-10, 1)) in every categorical entropy (§7.3)
+
+
+# ------------------------------------------------------------------------------------------------
+# Elementary pieces
+# ------------------------------------------------------------------------------------------------
+
+
+def huber(error: jax.Array, delta: float = 1.0) -> jax.Array:
+    """Elementwise Huber: 0.5·e² for |e| < δ, δ·(|e| − 0.5·δ) beyond (δ = 1 in the reference)."""
+    abs_error = jnp.abs(error)
+    quadratic = 0.5 * jnp.square(error)
+    linear = delta * (abs_error - 0.5 * delta)
+    return jnp.where(abs_error < delta, quadratic, linear)
+
+
+def squared(error: jax.Array) -> jax.Array:
+    """Elementwise 0.5·e²: textbook SAC's critic objective; equals Huber inside |e| < 1."""
+    return 0.5 * jnp.square(error)
+
+
+REGRESSION_LOSSES = {"huber": huber, "l2": squared}
+
+
+def categorical_entropy(probs: jax.Array, axis: int = -1) -> jax.Array:
+    """H(p) = −Σ p·log(clip(p, 1e-10, 1)): zero-probability entries contribute exactly 0."""
+    log_p = jnp.log(jnp.clip(probs, PROB_CLIP, 1.0))
+    return -jnp.sum(probs * log_p, axis=axis)
+
+
+def weighted_mean(values: jax.Array, weight: jax.Array | None) -> jax.Array:
+    """Mean over the last axis, optionally weighted; an all-zero weight gives 0 (not NaN)."""
+    if weight is None:
+        return jnp.mean(values, axis=-1)
+    weight = jnp.broadcast_to(weight, values.shape).astype(values.dtype)
+    return jnp.sum(values * weight, axis=-1) / jnp.maximum(jnp.sum(weight, axis=-1), 1.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# TD targets (§1.2); constants for the critic step
+# ------------------------------------------------------------------------------------------------
+
+
+def continuous_td_target(
+    reward: jax.Array,
+    discount: jax.Array,
+    next_q: jax.Array,
+    next_log_prob: jax.Array,
+    alpha: jax.Array,
+) -> jax.Array:
+    """y = r + γ(1−d)·(min_j Q'_j(s', a') − α·log π(a'|s')), with a' ~ π(·|s') (one sample).
+
+    `next_q` (n_critics, B) from the target critics; the result is stop-gradiented.
+    """
+    soft_value = jnp.min(next_q, axis=0) - alpha * next_log_prob
+    return jax.lax.stop_gradient(reward + discount * soft_value)
+
+
+def discrete_td_target(
+    reward: jax.Array,
+    discount: jax.Array,
+    next_q: jax.Array,
+    next_probs: jax.Array,
+    alpha: jax.Array,
+) -> jax.Array:
+    """y = r + γ(1−d)·(Σ_a π(a|s')·min_j Q'_j(s', a) + α·H(π(·|s'))).
+
+    The minimum over critics is taken per action **before** the expectation (§1.2).
+    `next_q` (n_critics, B, N), `next_probs` (B, N).
+    """
+    min_q = jnp.min(next_q, axis=0)
+    soft_value = jnp.sum(next_probs * min_q, axis=-1) + alpha * categorical_entropy(next_probs)
+    return jax.lax.stop_gradient(reward + discount * soft_value)
+
+
+# ------------------------------------------------------------------------------------------------
+# Critic loss (§1.1)
+# ------------------------------------------------------------------------------------------------
+
+
+def critic_loss(
+    q: jax.Array,
+    target: jax.Array,
+    kind: str = "huber",
+    weight: jax.Array | None = None,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Mean over critics of the (weighted) batch mean of Huber / L2 (Q_j − y).
+
+    `q` (n_critics, B) holds the online critics at the *taken* actions; `target` (B,) is constant.
+    For the reference's two critics this equals both its continuous form ½·Σ_j mean_b and its
+    discrete form mean over the (2, B) stack.
+    """
+    if kind not in REGRESSION_LOSSES:
+        raise ValueError(f"unknown critic loss {kind!r}; valid: {', '.join(REGRESSION_LOSSES)}")
+    error = q - jax.lax.stop_gradient(target)[None]
+    per_critic = weighted_mean(REGRESSION_LOSSES[kind](error), weight)
+    loss = jnp.mean(per_critic)
+    return loss, {"loss_critic": loss}
+
+
+# ------------------------------------------------------------------------------------------------
+# Actor losses (§2)
+# ------------------------------------------------------------------------------------------------
+
+
+def sac_actor_loss(
+    log_prob: jax.Array, q: jax.Array, alpha: jax.Array
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """SAC: mean_b(α·log π(ã|s) − min_j Q_j(s, ã)), one reparameterised sample per state.
+
+    `log_prob` (B,), `q` (n_critics, B) from the **updated** online critics; α is a constant.
+    """
+    alpha = jax.lax.stop_gradient(alpha)
+    loss = jnp.mean(alpha * log_prob - jnp.min(q, axis=0))
+    entropy = -jax.lax.stop_gradient(log_prob)
+    return loss, {
+        "loss_actor": loss,
+        "entropy": entropy,  # per-sample, consumed by the α loss
+        "entropy_mean": jnp.mean(entropy),
+    }
+
+
+def dsac_actor_loss(
+    probs: jax.Array, q: jax.Array, alpha: jax.Array
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Discrete SAC: −mean_b(Σ_a π(a|s)·Q̄(s, a) + α·H(π(·|s))), Q̄ = **mean** over critics.
+
+    Deviation from SAC-Discrete kept on purpose (§7.2.2): the reference actor uses the critics'
+    mean, not their minimum (the target still uses the minimum).
+    """
+    alpha = jax.lax.stop_gradient(alpha)
+    mean_q = jnp.mean(q, axis=0)
+    entropy = categorical_entropy(probs)
+    loss = -jnp.mean(jnp.sum(probs * mean_q, axis=-1) + alpha * entropy)
+    entropy = jax.lax.stop_gradient(entropy)
+    return loss, {
+        "loss_actor": loss,
+        "entropy": entropy,
+        "entropy_mean": jnp.mean(entropy),
+        "entropy_std": jnp.std(entropy),
+    }
+
+
+def xsac_actor_loss(
+    weights: jax.Array,
+    log_prob: jax.Array,
+    q: jax.Array,
+    alpha: jax.Array,
+    kappa: jax.Array,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """XSAC, paper eq. 8 + eq. 10: mean_b[Σ_k w_k·(α·log π(a_k|s) − min_j Q_j(s, a_k)) − κ·H(w)].
+
+    * `weights` (B, K): flattened component weights w_k (absent slots exactly 0); they keep their
+      gradient (§7.2.1): through the expectation here, and inside `log_prob`, which the caller
+      must evaluate under the **full mixture** for every component's own sample a_k.
+    * `log_prob` (B, K): log π(a_k|s) with a_k = tanh(μ_k + σ_k ε_k), one noise per component.
+    * `q` (n_critics, B, K): updated online critics at every a_k; min over critics per component.
+    * κ > 0 rewards spread-out weights (the term is *subtracted*, §7.2.3).
+
+    Absent components carry weight 0, so their (finite) values drop out; a NaN there would not,
+    which is why the caller must keep them finite.
+    """
+    alpha = jax.lax.stop_gradient(alpha)
+    kappa = jax.lax.stop_gradient(kappa)
+    per_component = alpha * log_prob - jnp.min(q, axis=0)
+    mixture_entropy = categorical_entropy(weights)
+    loss = jnp.mean(jnp.sum(weights * per_component, axis=-1) - kappa * mixture_entropy)
+    # For the α loss and the logs: the weight-averaged component log-prob Σ_k w_k log π(a_k|s).
+    mean_log_prob = jax.lax.stop_gradient(jnp.sum(weights * log_prob, axis=-1))
+    return loss, {
+        "loss_actor": loss,
+        "entropy": -mean_log_prob,
+        "entropy_mean": -jnp.mean(mean_log_prob),
+        "entropy_std": jnp.std(mean_log_prob),
+        "mixture_entropy": jnp.mean(jax.lax.stop_gradient(mixture_entropy)),
+        "kappa": kappa,
+    }
+
+
+def xdsac_actor_loss(
+    probs: jax.Array,
+    weights: jax.Array,
+    q: jax.Array,
+    alpha: jax.Array,
+    kappa: jax.Array,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """XDSAC, paper eq. 4 + eq. 10 in closed form: −mean_b(Σ_a π(a|s)·Q̄ + α·H(π) + κ·H(w)).
+
+    `probs` (B, N): the **mixture** π(a|s) = Σ_o w_o q_o(a) (H is the mixture's entropy, not the
+    components'); `weights` (B, O); `q` (n_critics, B, N), averaged over critics as in DSAC.
+    """
+    alpha = jax.lax.stop_gradient(alpha)
+    kappa = jax.lax.stop_gradient(kappa)
+    mean_q = jnp.mean(q, axis=0)
+    entropy = categorical_entropy(probs)
+    mixture_entropy = categorical_entropy(weights)
+    loss = -jnp.mean(jnp.sum(probs * mean_q, axis=-1) + alpha * entropy + kappa * mixture_entropy)
+    entropy = jax.lax.stop_gradient(entropy)
+    return loss, {
+        "loss_actor": loss,
+        "entropy": entropy,
+        "entropy_mean": jnp.mean(entropy),
+        "entropy_std": jnp.std(entropy),
+        "mixture_entropy": jnp.mean(jax.lax.stop_gradient(mixture_entropy)),
+        "kappa": kappa,
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# Entropy coefficient (§1.3) and Polyak (§1.4)
+# ------------------------------------------------------------------------------------------------
+
+
+def entropy_coef_loss(
+    log_alpha: jax.Array, entropy: jax.Array, target_entropy: jax.Array
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """L(log α) = log α · mean_b(Ĥ − H_target), the bracket constant.
+
+    Ĥ is the per-sample entropy estimate from the actor step: −log π(ã|s) (SAC), −Σ_k w_k log π(a_k|s)
+    (XSAC), H(π(·|s)) (discrete). This is the reference's −ℓ·mean(log π + H_target) resp.
+    −ℓ·mean(H_target − H) written once: entropy above target ⇒ positive gradient ⇒ log α decreases.
+    """
+    gap = jax.lax.stop_gradient(jnp.mean(entropy) - target_entropy)
+    loss = log_alpha * gap
+    return loss, {"loss_ent_coef": loss}
+
+
+def polyak_update(target_params, online_params, tau: jax.Array):
+    """θ' ← (1 − τ)·θ' + τ·θ for every leaf (τ = 0.005 in every config)."""
+    return jax.tree_util.tree_map(lambda t, o: (1.0 - tau) * t + tau * o, target_params, online_params)
