@@ -1,0 +1,109 @@
+"""``envs.make(name, **overrides) -> (env, params)``: the single entry point to the scenarios.
+
+Names:
+
+* ``"country_road"`` / ``"country_road_discrete"``: cone track (original ``racing``), Box(-1, 1, (3,))
+  or Discrete(12) actions.
+* ``"tracking"`` / ``"tracking_discrete"``: centre-line lookahead (original ``racing_tracking`` with
+  the paper's 25 points 2 m apart), Box(-1, 1, (3,)) or Discrete(12) actions.
+
+Overrides (keyword arguments):
+
+* any numeric field of :class:`envs.racing.RacingParams` (``k_forwards``, ``max_steps``,
+  ``track_width``, ``lookahead_spacing`` ...) and ``vehicle`` (a ``VehicleParams``);
+* ``track_source``: ``"bank"`` (default: reset draws uniformly from a bank generated once, here, on
+  the host) or ``"generate"`` (reset generates a fresh track; slow under auto-reset + vmap);
+* ``track_bank_size`` (default :data:`DEFAULT_BANK_SIZE`) and ``track_seed`` (default 0): the bank;
+  the same (seed, size) gives the same bank (cached per process);
+* ``track``: a single ``Track`` (e.g. from ``track_from_arrays``) used for every episode, or a bank
+  of tracks (a ``Track`` with a leading axis, e.g. ``envs.racing.stack_tracks([...])``);
+* ``lookahead_points`` (tracking only, default 25).
+
+Unknown names or overrides raise ``ValueError`` listing the valid ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+
+from envs.core import default_float
+from envs.country_road import CountryRoad
+from envs.racing import RacingEnv, RacingParams, with_bank, with_track
+from envs.track import Track, make_track_bank
+from envs.tracking import Tracking
+from envs.vehicle import VehicleParams
+
+DEFAULT_BANK_SIZE = 128
+
+_SCENARIOS = {
+    "country_road": (CountryRoad, False),
+    "country_road_discrete": (CountryRoad, True),
+    "tracking": (Tracking, False),
+    "tracking_discrete": (Tracking, True),
+}
+ENV_NAMES = tuple(_SCENARIOS)
+
+_PARAM_FIELDS = tuple(
+    f.name
+    for f in dataclasses.fields(RacingParams)
+    if f.name not in ("tracks", "tables", "start_s", "reset_obs")
+)
+_BUILD_OPTIONS = ("track_bank_size", "track_seed", "track")
+_TRACKING_OPTIONS = ("lookahead_points",)
+
+
+def valid_overrides(name: str) -> tuple[str, ...]:
+    """The keyword overrides ``make(name, ...)`` accepts."""
+    extra = _TRACKING_OPTIONS if _SCENARIOS[name][0] is Tracking else ()
+    return tuple(sorted(_PARAM_FIELDS + _BUILD_OPTIONS + extra))
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_bank(seed: int, size: int, dtype_name: str) -> Track:
+    return make_track_bank(jax.random.PRNGKey(seed), size)
+
+
+def track_bank(seed: int = 0, size: int = DEFAULT_BANK_SIZE) -> Track:
+    """A bank of ``size`` generated tracks (leading axis), cached per (seed, size, dtype)."""
+    if int(size) < 1:
+        raise ValueError(f"track_bank_size must be a positive integer, got {size!r}")
+    return _cached_bank(int(seed), int(size), str(default_float()))
+
+
+def make(name: str, **overrides) -> tuple[RacingEnv, RacingParams]:
+    """Build a scenario and its params; see the module docstring for names and overrides."""
+    if name not in _SCENARIOS:
+        raise ValueError(f"unknown env name {name!r}; valid names: {', '.join(ENV_NAMES)}")
+    cls, discrete = _SCENARIOS[name]
+    valid = valid_overrides(name)
+    unknown = sorted(set(overrides) - set(valid))
+    if unknown:
+        raise ValueError(f"unknown override(s) {unknown} for {name!r}; valid overrides: {', '.join(valid)}")
+
+    env_kwargs = {k: overrides.pop(k) for k in _TRACKING_OPTIONS if k in overrides}
+    env = cls(discrete=discrete, **env_kwargs)
+
+    user_track = overrides.pop("track", None)
+    bank_size = overrides.pop("track_bank_size", DEFAULT_BANK_SIZE)
+    seed = overrides.pop("track_seed", 0)
+    source = overrides.get("track_source", "bank")
+    if source not in ("bank", "generate"):
+        raise ValueError(f"track_source must be 'bank' or 'generate', got {source!r}")
+    vehicle = overrides.pop("vehicle", None) or VehicleParams()
+    if not isinstance(vehicle, VehicleParams):
+        raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+
+    params = RacingParams(vehicle=vehicle, tracks=None, **overrides)
+    if user_track is not None:
+        if not isinstance(user_track, Track):
+            raise ValueError(f"track must be an envs.track.Track (track_from_arrays), got {type(user_track)}")
+        if source == "generate":
+            raise ValueError("a user track and track_source='generate' exclude each other")
+        batched = jax.numpy.ndim(user_track.num_points) == 1
+        params = with_bank(params, user_track) if batched else with_track(params, user_track)
+    elif source == "bank":
+        params = with_bank(params, track_bank(seed, bank_size))
+    return env, env.prepare(params)
