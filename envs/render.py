@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PatchCollection, PolyCollection
@@ -291,3 +292,69 @@ def save_video(frames: Sequence[np.ndarray], path: str | Path, fps: float = 10.0
                 writer.grab_frame()
         return path
     raise ValueError(f"unsupported video format {suffix!r}: use .gif or .mp4")
+
+
+# ------------------------------------------------------------------------------------------------
+# Racing scenarios (Country Road, Tracking): frames straight from an env state
+# ------------------------------------------------------------------------------------------------
+
+
+def _racing_track(state, params):
+    """The episode's track as numpy: carried in the state, or looked up in the params' bank."""
+    if getattr(state, "track", None) is not None:
+        return _to_numpy(state.track)
+    index = int(np.asarray(state.track_index))
+    return _to_numpy(params.tracks, index)
+
+
+def _to_numpy(tree, index: int | None = None):
+    """A pytree of arrays as numpy, optionally taking one entry of the leading axis."""
+    return jax.tree.map(lambda x: np.asarray(x if index is None else x[index]), tree)
+
+
+def render_racing_state(
+    state,
+    params,
+    control: Sequence[float] | None = None,
+    *,
+    show_cones: bool = True,
+    points: np.ndarray | None = None,
+    **frame_options,
+) -> np.ndarray:
+    """One frame of a Country Road / Tracking episode from its (unbatched) ``RacingState``.
+
+    ``control`` is the mapped ``(steer, throttle, brake)`` of the last step, for the pedal bars and
+    brake lights (``envs.actions.continuous_to_control`` / ``discrete_to_control`` give it). Hit cones
+    are gone; Tracking has no cones. Other keyword arguments go to :func:`render_frame`.
+    """
+    track = _racing_track(state, params)
+    vehicle = _to_numpy(state.vehicle)
+    speed = np.cos(vehicle.theta) * vehicle.vx + np.sin(vehicle.theta) * vehicle.vy
+    throttle, brake = (0.0, 0.0) if control is None else (float(control[1]), float(control[2]))
+    pose = Pose(
+        float(vehicle.x),
+        float(vehicle.y),
+        float(vehicle.theta),
+        float(vehicle.steer),
+        float(speed),
+        throttle,
+        brake,
+    )
+    cone_xy = cone_type = None
+    if show_cones:
+        alive = np.asarray(state.cone_alive, dtype=bool)
+        cone_xy, cone_type = track.cone_xy[alive], track.cone_type[alive]
+    centerline = track.centerline[: int(track.num_points)]
+    return render_frame(pose, centerline, cone_xy, cone_type, points, **frame_options)
+
+
+def render_racing_episode(states, params, controls=None, **frame_options) -> list[np.ndarray]:
+    """Frames for a stacked sequence of states (leading time axis, e.g. the output of ``lax.scan``)."""
+    states = _to_numpy(states)
+    length = int(np.asarray(states.step_count).shape[0])
+    frames = []
+    for t in range(length):
+        state_t = _to_numpy(states, t)
+        control = None if controls is None else np.asarray(controls)[t]
+        frames.append(render_racing_state(state_t, params, control, **frame_options))
+    return frames

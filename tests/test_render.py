@@ -1,5 +1,7 @@
 """Bird-view renderer: content, mirroring, overlays and video files (no env needed)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -20,7 +22,9 @@ def oval():
 
 def test_frame_has_road_cones_and_car(oval):
     centerline, cones, types = oval
-    frame = render_frame(Pose(60.0, 0.0, np.pi / 2, speed=5.0), centerline, cones, types, width=640, height=360)
+    frame = render_frame(
+        Pose(60.0, 0.0, np.pi / 2, speed=5.0), centerline, cones, types, width=640, height=360
+    )
     assert frame.shape == (360, 640, 3) and frame.dtype == np.uint8
     colours = {tuple(c) for c in frame.reshape(-1, 3)}
     assert len(colours) > 10, "frame is blank"
@@ -83,3 +87,33 @@ def test_bad_video_requests_fail_clearly(tmp_path):
         save_video([], tmp_path / "x.gif")
     with pytest.raises(ValueError, match="at least 16x16"):
         render_frame(Pose(0.0, 0.0, 0.0), width=8, height=8)
+
+
+def test_renders_a_country_road_episode_from_env_states(tmp_path):
+    import jax
+
+    import envs
+    from envs.actions import continuous_to_control
+    from envs.render import render_racing_episode, render_racing_state
+
+    with np.load(Path(__file__).parent / "data" / "episode_country_road_public.npz") as data:
+        pose = data["start_pose"]
+        track = envs.track_from_arrays(
+            data["track_centerline"], pose[:2], pose[2], data["cone_pos"], data["cone_type"]
+        )
+        actions = np.asarray(data["actions_raw"][:40], np.float32)
+    env, params = envs.make("country_road", track=track)
+    _, state = env.reset(jax.random.PRNGKey(0), params)
+
+    def body(state, action):
+        state = env.step(jax.random.PRNGKey(0), state, action, params)[1]
+        return state, state
+
+    _, states = jax.jit(lambda s, a: jax.lax.scan(body, s, a))(state, actions)
+    first = render_racing_state(state, params, **SIZE)
+    assert len({tuple(c) for c in first.reshape(-1, 3)}) > 10
+    controls = np.asarray(jax.vmap(continuous_to_control)(actions))
+    frames = render_racing_episode(jax.tree.map(lambda x: x[::13], states), params, controls[::13], **SIZE)
+    assert len(frames) == 4 and all(f.shape == (180, 320, 3) for f in frames)
+    assert not np.array_equal(frames[0], frames[-1])  # the car moved
+    save_video(frames, tmp_path / "episode.gif")
