@@ -21,8 +21,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-PROB_CLIP = 1e-10  # log(clip(p, 1e-10, 1)) in every categorical entropy (§7.3)
-
+from xrl_jax.distributions import clipped_entropy
 
 # ------------------------------------------------------------------------------------------------
 # Elementary pieces
@@ -45,10 +44,8 @@ def squared(error: jax.Array) -> jax.Array:
 REGRESSION_LOSSES = {"huber": huber, "l2": squared}
 
 
-def categorical_entropy(probs: jax.Array, axis: int = -1) -> jax.Array:
-    """H(p) = −Σ p·log(clip(p, 1e-10, 1)): zero-probability entries contribute exactly 0."""
-    log_p = jnp.log(jnp.clip(probs, PROB_CLIP, 1.0))
-    return -jnp.sum(probs * log_p, axis=axis)
+# H(p) = −Σ p·log(clip(p, 1e-10, 1)): zero-probability entries contribute exactly 0 (§7.3).
+categorical_entropy = clipped_entropy
 
 
 def weighted_mean(values: jax.Array, weight: jax.Array | None) -> jax.Array:

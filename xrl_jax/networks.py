@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from xrl_jax.distributions import masked_softmax
+
 Array = jax.Array
 Observation = Mapping[str, Array]
 
@@ -139,17 +141,12 @@ def positional_encoding(values: Array, num_freqs: int = 4, include_input: bool =
 
 
 def masked_mixture_weights(logits: Array, present: Array) -> Array:
-    """Masked softmax over the object axis (spec §3.1 steps 3-4), written to be NaN-free.
+    """Masked softmax over the object axis (spec §3.1 steps 3-4): ``distributions.masked_softmax``.
 
     Absent slots get exactly 0 and no gradient whatever their logit; a sample without any present
-    slot falls back to uniform 1/O. The max is stop-gradiented (a shift the softmax ignores).
+    slot falls back to uniform 1/O.
     """
-    shift = jax.lax.stop_gradient(jnp.max(jnp.where(present, logits, MASKED_LOGIT), axis=-1, keepdims=True))
-    unnormalised = jnp.where(present, jnp.exp(jnp.where(present, logits - shift, 0.0)), 0.0)
-    total = jnp.sum(unnormalised, axis=-1, keepdims=True)
-    any_present = total > 0
-    uniform = jnp.full_like(unnormalised, 1.0 / logits.shape[-1])
-    return jnp.where(any_present, unnormalised / jnp.where(any_present, total, 1.0), uniform)
+    return masked_softmax(logits, present)
 
 
 def centre_and_mask_logits(raw_logits: Array, present: Array) -> Array:
