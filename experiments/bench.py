@@ -2,6 +2,9 @@
 
     python experiments/bench.py env      [--scenarios tracking country_road] [--batches 1 64 1024 4096 8192]
     python experiments/bench.py matmul   [--size 2048]
+    python experiments/bench.py update   [--algos sac dsac xsac xdsac] [--widths 64 128 256] [--seeds 1 5 20]
+    python experiments/bench.py train    [--env tracking] [--algos xsac xdsac] [--seeds 1 5 20]
+                                         [--widths 256 64] [--chunks 2] [--set KEY=VALUE ...]
 
 Numbers are wall-clock rates after compilation (compile time is reported separately), measured with
 ``block_until_ready`` on the default JAX device. Tests never assert timings; these scripts do.
@@ -93,6 +96,148 @@ def bench_env(scenario: str, batch: int, steps: int, repeats: int) -> dict:
     }
 
 
+def peak_memory_bytes() -> dict:
+    """Peak device memory (accelerators) and the process's peak resident memory (always)."""
+    import resource
+
+    out = {"host_peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}
+    try:
+        stats = jax.devices()[0].memory_stats() or {}
+    except Exception:
+        stats = {}
+    if "peak_bytes_in_use" in stats:
+        out["device_peak_bytes"] = int(stats["peak_bytes_in_use"])
+    return out
+
+
+def bench_train(
+    env: str, algo: str, seeds: int, width: int | None, chunks: int, preset: str, overrides: list
+) -> dict:
+    """End-to-end training env-steps/s (one gradient step per transition included), all seeds together.
+
+    Times ``chunks`` compiled chunks after the first (which carries compilation and the warm-up);
+    reports the compile time, the per-seed memory estimate and the peak memory.
+    """
+    from xrl_jax import train as T
+
+    sets = {"log_interval": "2000", "warmup_steps": "256", **dict(item.split("=", 1) for item in overrides)}
+    if width is not None:
+        sets.update(actor_width=str(width), critic_width=str(width))
+    log_interval = int(sets["log_interval"])
+    steps = log_interval * (chunks + 1)
+    cfg = T.resolve_config(env, algo, preset, num_seeds=seeds, total_steps=steps, overrides=sets)
+    cfg = cfg.replace(buffer_size=max(cfg.batch_size, min(cfg.buffer_size, steps)))
+    start = time.perf_counter()
+    trainer = T.make_train(cfg)
+    state = jax.block_until_ready(trainer.init(jnp.int32(0), jnp.arange(seeds, dtype=jnp.int32)))
+    setup_s = time.perf_counter() - start
+    start = time.perf_counter()
+    state, metrics = trainer.chunk(state, jnp.int32(0))
+    jax.block_until_ready(metrics)
+    first_chunk_s = time.perf_counter() - start  # compile + one chunk (mostly warm-up)
+    start = time.perf_counter()
+    for c in range(1, chunks + 1):
+        state, metrics = trainer.chunk(state, jnp.int32(c * cfg.chunk_vector_steps))
+    jax.block_until_ready(metrics)
+    seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    jax.block_until_ready(trainer.evaluate(state))
+    eval_first_s = time.perf_counter() - start
+    start = time.perf_counter()
+    jax.block_until_ready(trainer.evaluate(state))
+    eval_s = time.perf_counter() - start
+    steps_timed = chunks * log_interval * seeds
+    per_seed = T.estimate_seed_bytes(trainer)
+    rate = steps_timed / seconds
+    return {
+        "env": env,
+        "algo": algo,
+        "seeds": seeds,
+        "width": width or cfg.agent.actor_width,
+        "num_envs": cfg.num_envs,
+        "batch_size": cfg.batch_size,
+        "env_steps_per_s": rate,
+        "updates_per_s": rate,  # one gradient step per collected transition after warm-up
+        "per_seed_env_steps_per_s": rate / seeds,
+        "hours_for_1e6_steps_all_seeds": 1e6 * seeds / rate / 3600,
+        "compile_s": {"setup_and_init": setup_s, "first_chunk": first_chunk_s, "first_eval": eval_first_s},
+        "eval_s": eval_s,
+        "eval_episodes": cfg.eval_episodes,
+        "memory": {"per_seed_estimate_bytes": per_seed, **peak_memory_bytes()},
+    }
+
+
+def bench_update(
+    algo: str, width: int, seeds: int, updates: int, repeats: int, batch_size: int = 256
+) -> dict:
+    """Gradient updates/s for one agent at Tracking shapes, ``seeds`` agent states vmapped.
+
+    Every update reuses one random batch, so the number is the learner's cost alone (no buffer or env).
+    FLOPs per update come from XLA's cost analysis of one compiled update.
+    """
+    from xrl_jax.agents import make_agent
+    from xrl_jax.config import preset
+    from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
+
+    config = preset("paper", "tracking", algo).replace(actor_width=width, critic_width=width)
+    shape = ENV_OBSERVATIONS["tracking"]
+    discrete = algo in ("dsac", "xdsac")
+    agent = make_agent(config, dummy_observation(shape), 12 if discrete else 3)
+    key = jax.random.PRNGKey(0)
+    states = jax.jit(jax.vmap(agent.init))(jax.random.split(key, seeds))
+
+    def observation(key):
+        key_state, key_set = jax.random.split(key)
+        objects = jax.random.uniform(
+            key_set, (batch_size, shape.num_objects, shape.object_features), minval=-1
+        )
+        return {
+            "state": jax.random.uniform(key_state, (batch_size, shape.state_dim), minval=-1),
+            shape.set_key: objects.at[..., 0].set(1.0),
+        }
+
+    k_obs, k_next, k_action, k_reward = jax.random.split(jax.random.PRNGKey(1), 4)
+    batch = {
+        "obs": observation(k_obs),
+        "next_obs": observation(k_next),
+        "action": (
+            jax.random.randint(k_action, (batch_size,), 0, 12)
+            if discrete
+            else jax.random.uniform(k_action, (batch_size, 3), minval=-1)
+        ),
+        "reward": jax.random.normal(k_reward, (batch_size,)),
+        "terminated": jnp.zeros(batch_size, bool),
+        "truncated": jnp.zeros(batch_size, bool),
+    }
+    update_all = jax.vmap(agent.update, in_axes=(0, 0, None))
+
+    def run(states, key):
+        def body(states, key):
+            return update_all(jax.random.split(key, seeds), states, batch)[0], None
+
+        return jax.lax.scan(body, states, jax.random.split(key, updates))[0]
+
+    start = time.perf_counter()
+    compiled = jax.jit(run).lower(states, key).compile()
+    compile_s = time.perf_counter() - start
+    one_update = jax.jit(lambda s, k: update_all(jax.random.split(k, seeds), s, batch)[0])
+    analysis = one_update.lower(states, key).compile().cost_analysis()
+    analysis = analysis[0] if isinstance(analysis, list) else analysis
+    flops_per_update = float(analysis.get("flops", float("nan"))) / seeds
+    jax.block_until_ready(compiled(states, key))
+    seconds = timed(lambda: compiled(states, key), repeats)
+    return {
+        "algo": algo,
+        "width": width,
+        "seeds": seeds,
+        "batch_size": batch_size,
+        "updates_per_s_per_seed": updates / seconds,
+        "gflop_per_update": flops_per_update / 1e9,
+        "achieved_gflops": flops_per_update * updates * seeds / seconds / 1e9,
+        "compile_s": compile_s,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bench.py", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -103,6 +248,28 @@ def main(argv: list[str] | None = None) -> int:
     env_parser.add_argument("--repeats", type=int, default=3)
     mm_parser = sub.add_parser("matmul", help="float32 matmul GFLOP/s of the default device")
     mm_parser.add_argument("--size", type=int, default=2048)
+    up_parser = sub.add_parser("update", help="agent updates/s per seed at Tracking shapes, FLOPs per update")
+    up_parser.add_argument(
+        "--algos",
+        nargs="+",
+        default=["sac", "dsac", "xsac", "xdsac"],
+        choices=["sac", "dsac", "xsac", "xdsac"],
+    )
+    up_parser.add_argument("--widths", nargs="+", type=int, default=[64, 128, 256])
+    up_parser.add_argument("--seeds", nargs="+", type=int, default=[1, 5, 20])
+    up_parser.add_argument("--repeats", type=int, default=2)
+    tr_parser = sub.add_parser(
+        "train", help="end-to-end training env-steps/s (updates included), compile, memory"
+    )
+    tr_parser.add_argument("--env", default="tracking", choices=["tracking", "country_road"])
+    tr_parser.add_argument("--algos", nargs="+", default=["xsac", "xdsac"])
+    tr_parser.add_argument("--seeds", nargs="+", type=int, default=[1, 5, 20])
+    tr_parser.add_argument(
+        "--widths", nargs="+", type=int, default=[256, 64], help="actor/critic widths (paper: 256)"
+    )
+    tr_parser.add_argument("--chunks", type=int, default=2, help="timed chunks after the first")
+    tr_parser.add_argument("--preset", default="paper", choices=["paper", "quick", "smoke"])
+    tr_parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra config overrides")
     args = parser.parse_args(argv)
 
     report: dict = {"machine": machine_info(), "command": args.command}
@@ -114,6 +281,27 @@ def main(argv: list[str] | None = None) -> int:
             for scenario in args.scenarios
             for batch in args.batches
         ]
+    elif args.command == "train":
+        if min(args.seeds) < 1 or min(args.widths) < 1 or args.chunks < 1:
+            parser.error("--seeds, --widths and --chunks must be positive")
+        report["results"] = [
+            bench_train(args.env, algo, seeds, width, args.chunks, args.preset, args.set)
+            for algo in args.algos
+            for width in args.widths
+            for seeds in args.seeds
+        ]
+    elif args.command == "update":
+        if min(args.widths) < 1 or min(args.seeds) < 1 or args.repeats < 1:
+            parser.error("--widths, --seeds and --repeats must be positive")
+        report["matmul"] = bench_matmul()  # the ceiling for these compute-bound updates, same run
+        report["results"] = []
+        for width in args.widths:
+            for seeds in args.seeds:
+                for algo in args.algos:
+                    updates = max(2, 40 * 64 // (width * seeds))  # keep each timed call ~1 s or more
+                    result = bench_update(algo, width, seeds, updates, args.repeats)
+                    result["fraction_of_matmul"] = result["achieved_gflops"] / report["matmul"]["gflops"]
+                    report["results"].append(result)
     elif args.command == "matmul":
         report["results"] = bench_matmul(args.size)
     json.dump(report, sys.stdout, indent=2)

@@ -1,16 +1,30 @@
 """Train SAC / DSAC / XSAC / XDSAC on a CarEnv scenario: ``python experiments/run.py --env tracking``.
 
-The command-line surface is fixed here; the vectorised trainer behind it lands with the trainer issue.
+All seeds of a run train in one process: the whole SAC loop is one compiled chunk, vmapped over
+seeds (see ``xrl_jax/train.py``). Results land in one folder (``--out``) that ``--resume`` can
+continue; a stopped and resumed run gives exactly the metrics of an uninterrupted one.
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
+import json
+import os
 import sys
+from pathlib import Path
 
-ENVS = ("country_road", "tracking", "intersection")
+ENVS = ("country_road", "tracking")
 ALGOS = ("sac", "dsac", "xsac", "xdsac")
 PRESETS = ("paper", "quick", "smoke")
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that reports a bad value in one line (no usage block), exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def positive_int(text: str) -> int:
@@ -24,48 +38,215 @@ def positive_int(text: str) -> int:
     return value
 
 
+EPILOG = """\
+presets:
+  paper  the spec's per-configuration hyper-parameters (1e6 steps, buffer 1e6, batch 256,
+         4 envs per seed, evaluation every 1e5 steps on 100 fixed tracks)
+  quick  30k steps per seed, width-64 networks, batch 128: ~10-15 min for one Tracking XDSAC
+         seed on a 2-core CPU (XSAC is ~2.5x slower per step)
+  smoke  a few hundred steps with tiny networks, for tests
+
+--set KEY=VALUE accepts any TrainConfig field (num_envs, warmup_steps, batch_size, buffer_size,
+  log_interval, eval_interval, eval_episodes, checkpoint_interval, train_tracks, track_seed,
+  eval_track_seed, seed, max_group_size, memory_budget_gb) or any agent field (actor_lr,
+  critic_lr, gamma, tau, kappa, target_entropy, actor_width, critic_depth, truncation, ...;
+  'agent.' prefix optional). Unknown keys fail with the list of allowed ones.
+
+results folder:
+  config.json (resolved config, versions, git commit), metrics/seed_<i>.jsonl (every
+  log_interval steps), eval/seed_<i>.jsonl, checkpoints/, summary.json (IQM and 95 % stratified
+  bootstrap CI over seeds). An existing folder is never overwritten: use --resume to continue it.
+
+environment: XRL_JAX_CACHE_DIR (default ~/.cache/xrl-jax) caches generated tracks and compiled code.
+"""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="run.py",
         description="Train explainable mixture-policy agents (and SAC baselines) on CarEnv scenarios, "
         "all seeds of a run vectorised in one process.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--env", choices=ENVS, default=None, help="scenario to train on (default: tracking)")
+    parser.add_argument("--algo", choices=ALGOS, default=None, help="agent (default: xsac)")
+    parser.add_argument(
+        "--seeds", type=positive_int, default=None, help="independent seeds trained at once (default: 1)"
     )
     parser.add_argument(
-        "--env", choices=ENVS, default="tracking", help="scenario to train on (default: %(default)s)"
-    )
-    parser.add_argument("--algo", choices=ALGOS, default="xsac", help="agent (default: %(default)s)")
-    parser.add_argument("--seeds", type=positive_int, default=1, help="independent seeds trained at once")
-    parser.add_argument(
-        "--steps", type=positive_int, default=None, help="environment steps per seed (default: preset)"
+        "--steps",
+        type=positive_int,
+        default=None,
+        help="environment steps per seed, a multiple of num_envs (default: the preset's)",
     )
     parser.add_argument(
-        "--preset", choices=PRESETS, default="paper", help="hyper-parameter preset (default: %(default)s)"
+        "--preset", choices=PRESETS, default=None, help="hyper-parameter preset (default: paper)"
     )
     parser.add_argument(
         "--set",
         metavar="KEY=VALUE",
         action="append",
-        default=[],
-        help="override one hyper-parameter; repeatable",
+        default=None,
+        help="override one setting or hyper-parameter (see below); repeatable",
     )
-    parser.add_argument("--out", default=None, help="results folder (default: results/<env>-<algo>-<time>)")
-    parser.add_argument("--resume", default=None, metavar="DIR", help="continue the run stored in DIR")
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="results folder, must not exist yet (default: results/<env>-<algo>-<time>)",
+    )
+    parser.add_argument(
+        "--resume",
+        default=None,
+        metavar="DIR",
+        help="continue the run stored in DIR (other options, if given, must match its config)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar and no log lines")
     return parser
+
+
+def fail(message: str) -> int:
+    print(f"run.py: error: {message}", file=sys.stderr)
+    return 2
+
+
+def enable_compilation_cache() -> None:
+    """Reuse compiled chunks across runs of the same configuration (a minute of compile on CPU)."""
+    import jax
+
+    from xrl_jax.train import cache_dir
+
+    path = cache_dir() / "jax"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+def _config_from_args(args, base: dict | None = None):
+    """The resolved TrainConfig; unspecified options come from ``base`` (a stored run) or defaults."""
+    from xrl_jax.train import parse_overrides, resolve_config
+
+    base = base or {}
+    overrides = parse_overrides(args.set or [])
+    return resolve_config(
+        env=args.env or base.get("env", "tracking"),
+        algo=args.algo or base.get("algo", "xsac"),
+        preset=args.preset or base.get("preset", "paper"),
+        num_seeds=args.seeds or base.get("num_seeds", 1),
+        total_steps=args.steps if args.steps is not None else None,
+        overrides=overrides,
+    )
+
+
+def _resume_mismatches(args, stored) -> list[str]:
+    """The explicitly given options (and --set keys) whose values differ from the stored run's."""
+    from xrl_jax.train import parse_overrides
+
+    wanted = _config_from_args(args, stored.to_dict()).to_dict()
+    have = stored.to_dict()
+    checked = [
+        ("env", "env"),
+        ("algo", "algo"),
+        ("preset", "preset"),
+        ("seeds", "num_seeds"),
+        ("steps", "total_steps"),
+    ]
+    out = []
+    for option, field in checked:
+        if getattr(args, option) is not None and wanted[field] != have[field]:
+            out.append(f"{field}: stored {have[field]!r}, given {wanted[field]!r}")
+    for key in parse_overrides(args.set or []):
+        name = key.removeprefix("agent.")
+        a, b = (have[name], wanted[name]) if name in have else (have["agent"][name], wanted["agent"][name])
+        if a != b:
+            out.append(f"{name}: stored {a!r}, given {b!r}")
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    for item in args.set:
-        if "=" not in item or not item.split("=", 1)[0]:
-            print(f"run.py: error: --set expects KEY=VALUE, got {item!r}", file=sys.stderr)
-            return 2
-    print(
-        "run.py: error: the vectorised trainer is not available in this version yet; "
-        "see the README for what can be run today",
-        file=sys.stderr,
+    from xrl_jax.train import ConfigError, MemoryPlanError, TrainConfig
+
+    given_any = any(
+        v is not None for v in (args.env, args.algo, args.seeds, args.steps, args.preset, args.set)
     )
-    return 2
+    try:
+        if args.resume is not None:
+            if args.out is not None:
+                return fail("--out and --resume exclude each other (a resumed run writes into DIR)")
+            out = Path(args.resume)
+            config_path = out / "config.json"
+            if not config_path.is_file():
+                return fail(f"--resume {out}: not a results folder (no config.json)")
+            try:
+                stored = TrainConfig.from_dict(json.loads(config_path.read_text())["config"])
+            except (ValueError, KeyError, TypeError) as err:
+                return fail(f"--resume {out}: config.json is unreadable or from another version ({err})")
+            if given_any:
+                diffs = _resume_mismatches(args, stored)
+                if diffs:
+                    return fail(f"--resume {out} holds a run with another configuration ({'; '.join(diffs)})")
+            cfg = stored
+        else:
+            cfg = _config_from_args(args)
+            out = (
+                Path(args.out)
+                if args.out
+                else ROOT
+                / "results"
+                / (f"{cfg.env}-{cfg.algo}-{datetime.datetime.now(datetime.timezone.utc):%Y%m%d-%H%M%S}")
+            )
+            if out.exists() and (not out.is_dir() or any(out.iterdir())):
+                return fail(
+                    f"results folder {out} already exists; "
+                    f"choose another --out or continue it with --resume {out}"
+                )
+            try:
+                out.mkdir(parents=True, exist_ok=True)
+                probe = out / ".write_test"
+                probe.write_text("")
+                probe.unlink()
+            except OSError as err:
+                return fail(f"cannot write the results folder --out {out}: {err.strerror or err}")
+    except ConfigError as err:
+        return fail(str(err))
+
+    enable_compilation_cache()
+    from xrl_jax import evaluate as evaluate_mod
+    from xrl_jax import train as train_mod
+
+    log = (lambda *a, **k: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr))
+    if args.resume is None:
+        document = evaluate_mod.config_document(
+            cfg, [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)]
+        )
+        train_mod.write_atomic(out / "config.json", json.dumps(document, indent=2, sort_keys=True) + "\n")
+    log(
+        f"run.py: {cfg.env}/{cfg.algo} preset {cfg.preset}, "
+        f"{cfg.num_seeds} seed(s) x {cfg.total_steps} steps -> {out}"
+    )
+    try:
+        summary = train_mod.train(cfg, out, resume=args.resume is not None, progress=not args.quiet, log=log)
+    except MemoryPlanError as err:
+        return fail(str(err))
+    except KeyboardInterrupt:
+        print(
+            f"\nrun.py: interrupted; continue with: python experiments/run.py --resume {out}", file=sys.stderr
+        )
+        return 130
+    if summary is None:
+        print(
+            f"run.py: stopped early; continue with: python experiments/run.py --resume {out}", file=sys.stderr
+        )
+        return 1
+    print(evaluate_mod.format_table(summary))
+    print(f"results: {out}")
+    return 0
 
 
 if __name__ == "__main__":
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
     sys.exit(main())

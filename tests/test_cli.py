@@ -1,0 +1,212 @@
+"""The ``experiments/run.py`` CLI end to end: smoke runs, determinism, exact resume, bad input."""
+
+import functools
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+from train_support import prepare_cache
+
+from xrl_jax import train as train_mod
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ["--env", "tracking", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """``run.main`` loaded in-process, so runs of one configuration share their compilation."""
+    prepare_cache(tmp_path_factory.mktemp("cache"))
+    spec = importlib.util.spec_from_file_location("run_cli", ROOT / "experiments" / "run.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def call(run, capsys, *args):
+    """(exit status, stdout, stderr) of one CLI invocation."""
+    try:
+        status = run.main(list(args))
+    except SystemExit as exc:
+        status = exc.code
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def files_of(folder: Path, sub: str) -> dict[str, str]:
+    return {p.name: p.read_text() for p in sorted((folder / sub).glob("*.jsonl"))}
+
+
+@pytest.fixture(scope="module")
+def smoke_run(run, tmp_path_factory):
+    """One 2-seed smoke run of Tracking / XDSAC (192 steps per seed)."""
+    out = tmp_path_factory.mktemp("runs") / "first"
+    status = run.main([*SMOKE, "--out", str(out)])
+    assert status == 0
+    return out
+
+
+def test_help_documents_every_option(run, capsys):
+    status, out, _ = call(run, capsys, "--help")
+    assert status == 0
+    for option in (
+        "--env",
+        "--algo",
+        "--seeds",
+        "--steps",
+        "--preset",
+        "--set",
+        "--out",
+        "--resume",
+        "--quiet",
+    ):
+        assert option in out
+    for word in ("country_road", "tracking", "xdsac", "paper", "quick", "smoke", "KEY=VALUE", "summary.json"):
+        assert word in out
+
+
+def test_smoke_run_leaves_a_complete_results_folder(smoke_run):
+    config = json.loads((smoke_run / "config.json").read_text())
+    assert config["config"]["algo"] == "xdsac" and config["config"]["num_seeds"] == 2
+    assert config["resolved"]["env_name"] == "tracking_discrete"
+    assert config["versions"]["jax"] and "commit" in config["git"]
+    for seed in (0, 1):
+        metrics = [
+            json.loads(x) for x in (smoke_run / "metrics" / f"seed_{seed}.jsonl").read_text().splitlines()
+        ]
+        assert [m["step"] for m in metrics] == [64, 128, 192]
+        assert metrics[-1]["train/updates"] == 192 - 64
+        evals = [json.loads(x) for x in (smoke_run / "eval" / f"seed_{seed}.jsonl").read_text().splitlines()]
+        assert [e["step"] for e in evals] == [192] and len(evals[0]["episode_returns"]) == 3
+    summary = json.loads((smoke_run / "summary.json").read_text())
+    assert summary["complete"] and summary["seeds"] == [0, 1]
+    assert set(summary["aggregate"]) >= {"avg_return", "avg_etr"}
+    assert any((smoke_run / "checkpoints" / "group_0").iterdir())
+
+
+def test_same_seed_gives_identical_metrics_and_other_seeds_differ(run, smoke_run, tmp_path, capsys):
+    again = tmp_path / "again"
+    status, out, _ = call(run, capsys, *SMOKE, "--out", str(again))
+    assert status == 0 and "final return" in out and "IQM" in out
+    assert files_of(again, "metrics") == files_of(smoke_run, "metrics")
+    assert files_of(again, "eval") == files_of(smoke_run, "eval")
+    first = files_of(smoke_run, "metrics")
+    assert first["seed_0.jsonl"] != first["seed_1.jsonl"].replace('"seed": 1', '"seed": 0')
+    other = tmp_path / "other"
+    assert call(run, capsys, *SMOKE, "--set", "seed=5", "--out", str(other))[0] == 0
+    assert files_of(other, "metrics")["seed_0.jsonl"] != first["seed_0.jsonl"]
+
+
+def test_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, capsys, monkeypatch):
+    args = [*SMOKE, "--steps", "256", "--set", "checkpoint_interval=128"]
+    full, split = tmp_path / "full", tmp_path / "split"
+    assert call(run, capsys, *args, "--out", str(full))[0] == 0
+    # Stop after 3 of 4 chunks: the checkpoint is at step 128, metrics exist up to 192.
+    original = train_mod.train
+    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=3))
+    status, _, err = call(run, capsys, *args, "--out", str(split))
+    assert status == 1 and "--resume" in err
+    monkeypatch.setattr(train_mod, "train", original)
+    metrics0 = split / "metrics" / "seed_0.jsonl"
+    assert [json.loads(x)["step"] for x in metrics0.read_text().splitlines()] == [64, 128, 192]
+    with open(metrics0, "a") as f:
+        f.write('{"step": 256, "trunc')  # a line cut by a crash
+    status, out, _ = call(run, capsys, "--resume", str(split), "--quiet")
+    assert status == 0 and "final return" in out
+    assert files_of(split, "metrics") == files_of(full, "metrics")
+    assert files_of(split, "eval") == files_of(full, "eval")
+    summary_full = json.loads((full / "summary.json").read_text())
+    summary_split = json.loads((split / "summary.json").read_text())
+    assert summary_full["aggregate"] == summary_split["aggregate"]
+    # Resuming a finished run trains nothing and reprints the table.
+    status, out, _ = call(run, capsys, "--resume", str(split), "--quiet")
+    assert status == 0 and "final return" in out
+
+
+def one_line_error(status, err, *fragments):
+    assert status == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+@pytest.mark.parametrize(
+    "args, fragments",
+    [
+        (["--env", "moon"], ["invalid choice: 'moon'", "tracking", "country_road"]),
+        (["--algo", "ppo"], ["invalid choice: 'ppo'", "xdsac"]),
+        (["--preset", "huge"], ["invalid choice: 'huge'", "quick"]),
+        (["--steps", "-5"], ["positive integer"]),
+        (["--steps", "many"], ["positive integer"]),
+        (["--seeds", "0"], ["positive integer"]),
+        (["--preset", "smoke", "--steps", "130"], ["multiple of num_envs"]),
+        (["--set", "gamma"], ["KEY=VALUE", "'gamma'"]),
+        (["--set", "=0.9"], ["KEY=VALUE"]),
+        (["--set", "learning_rate=1"], ["unknown setting 'learning_rate'", "actor_lr"]),
+        (["--set", "gamma=abc"], ["cannot parse 'abc'"]),
+        (["--set", "tau=0"], ["tau must lie in (0, 1]"]),
+    ],
+)
+def test_bad_input_fails_at_once_with_one_line(run, capsys, tmp_path, args, fragments):
+    status, _, err = call(run, capsys, *args, "--out", str(tmp_path / "never"))
+    one_line_error(status, err, *fragments)
+    assert not (tmp_path / "never").exists()
+
+
+def test_unwritable_out_is_refused(run, capsys, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    status, _, err = call(run, capsys, "--preset", "smoke", "--out", str(blocker / "sub"))
+    one_line_error(status, err, "cannot write the results folder")
+
+
+def test_existing_results_are_never_overwritten(run, smoke_run, capsys):
+    before = files_of(smoke_run, "metrics")
+    status, _, err = call(run, capsys, *SMOKE, "--out", str(smoke_run))
+    one_line_error(status, err, "already exists", "--resume")
+    assert files_of(smoke_run, "metrics") == before
+
+
+def test_resume_checks_the_folder_and_its_config(run, smoke_run, capsys, tmp_path):
+    status, _, err = call(run, capsys, "--resume", str(tmp_path))
+    one_line_error(status, err, "not a results folder")
+    status, _, err = call(run, capsys, "--resume", str(smoke_run), "--algo", "xsac")
+    one_line_error(status, err, "another configuration", "algo")
+    status, _, err = call(run, capsys, "--resume", str(smoke_run), "--seeds", "3")
+    one_line_error(status, err, "another configuration", "num_seeds: stored 2, given 3")
+    status, _, err = call(run, capsys, "--resume", str(smoke_run), "--out", str(tmp_path / "x"))
+    one_line_error(status, err, "exclude each other")
+    (tmp_path / "config.json").write_text('{"config": {"env": "mars"}}')
+    status, _, err = call(run, capsys, "--resume", str(tmp_path))
+    one_line_error(status, err, "config.json is unreadable")
+
+
+def test_resume_with_the_same_options_is_accepted(run, smoke_run, capsys):
+    status, out, _ = call(run, capsys, "--resume", str(smoke_run), *SMOKE)
+    assert status == 0 and "final return" in out
+
+
+OTHER_COMBOS = [
+    ("tracking", "sac"),
+    ("tracking", "dsac"),
+    ("tracking", "xsac"),
+    ("country_road", "sac"),
+    ("country_road", "dsac"),
+    ("country_road", "xsac"),
+    ("country_road", "xdsac"),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env, algo", OTHER_COMBOS)
+def test_smoke_run_of_every_env_and_algo(run, capsys, tmp_path, env, algo):
+    out = tmp_path / "run"
+    status, stdout, err = call(run, capsys, "--env", env, "--algo", algo, "--preset", "smoke", "--quiet",
+                               "--out", str(out))  # fmt: skip
+    assert status == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] and "final return" in stdout
+    last = json.loads((out / "metrics" / "seed_0.jsonl").read_text().splitlines()[-1])
+    assert last["train/updates"] == 128 and last["train/loss_critic"] is not None

@@ -1,0 +1,101 @@
+"""Evaluation protocol (spec §6.1) with scripted drivers of known outcome, and the run summary."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from train_support import prepare_cache
+
+from xrl_jax import stats
+from xrl_jax.evaluate import format_table, make_evaluate, summarize_episodes, summarize_run
+from xrl_jax.train import make_envs, resolve_config
+
+
+class ScriptedAgent:
+    """Stands in for an agent: the 'agent state' is the one action every env takes."""
+
+    def act(self, key, state, obs, mode="train"):
+        assert mode == "eval"
+        return jnp.broadcast_to(state, (obs["state"].shape[0], 3))
+
+
+@pytest.fixture(scope="module")
+def scripted_evaluate(tmp_path_factory):
+    prepare_cache(tmp_path_factory.mktemp("cache"))
+    cfg = resolve_config("tracking", "sac", "smoke")
+    env, _, eval_params = make_envs(cfg)
+    return jax.jit(make_evaluate(env, eval_params, ScriptedAgent(), cfg.eval_episodes))
+
+
+def test_a_car_that_never_moves_idles_out_after_51_steps(scripted_evaluate):
+    # Pedals released and brake fully pressed (spec §3.3: truncated at step 51, reason Idling, return 0).
+    episodes = jax.device_get(scripted_evaluate(jax.random.PRNGKey(0), jnp.array([0.0, -1.0, 1.0])))
+    np.testing.assert_array_equal(episodes["length"], [51, 51, 51])
+    np.testing.assert_array_equal(episodes["return"], [0.0, 0.0, 0.0])
+    assert episodes["truncated"].all() and not episodes["terminated"].any()
+    summary = summarize_episodes(episodes)
+    assert summary["avg_etr"] == 0.0 and summary["avg_sr"] == 0.0 and summary["avg_episode_length"] == 51
+
+
+def test_full_throttle_straight_ahead_leaves_the_track(scripted_evaluate):
+    # Spec §8.3: driving straight at full throttle leaves the track after a few dozen steps.
+    episodes = jax.device_get(scripted_evaluate(jax.random.PRNGKey(0), jnp.array([0.0, 1.0, -1.0])))
+    assert episodes["terminated"].all() and not episodes["truncated"].any()
+    assert (episodes["length"] > 10).all() and (episodes["length"] < 200).all()
+    np.testing.assert_array_equal(episodes["last_reward"], [-1.0, -1.0, -1.0])  # off-track overwrite
+    # The return is the progress reward before leaving, then -1.
+    assert (episodes["return"] > -1.0).all()
+    summary = summarize_episodes(episodes)
+    assert summary["avg_etr"] == 1.0 and summary["avg_sr"] == 0.0
+
+
+def test_episode_classification_closed_form():
+    episodes = {
+        "return": np.array([1.0, 2.0, 3.0, 4.0]),
+        "length": np.array([10, 20, 30, 40]),
+        "terminated": np.array([True, True, False, False]),
+        "truncated": np.array([False, False, True, True]),
+        "last_reward": np.array([-1.0, 0.2, -1.0, 0.1]),  # only a terminated ending can be early
+        "track_velocity": np.array([1.0, 2.0, 3.0, 4.0]),
+        "cones_hit": np.array([0, 1, 2, 3]),
+    }
+    summary = summarize_episodes(episodes)
+    assert summary["avg_return"] == 2.5
+    assert summary["avg_episode_length"] == 25.0
+    assert summary["avg_etr"] == 0.25 and summary["avg_sr"] == 0.25
+    assert summary["avg_cones_hit"] == 1.5
+    assert summary["episode_returns"] == [1.0, 2.0, 3.0, 4.0]
+
+
+def test_summary_reports_iqm_and_bootstrap_ci_over_seeds(tmp_path):
+    cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=5)
+    finals = [10.0, 0.0, 30.0, 20.0, 100.0]
+    (tmp_path / "eval").mkdir()
+    for seed, score in enumerate(finals):
+        rows = [
+            {"step": 64, "avg_return": -5.0, "avg_etr": 1.0, "avg_episode_length": 1.0},
+            {"step": cfg.total_steps, "avg_return": score, "avg_etr": seed / 10, "avg_episode_length": 100.0},
+        ]
+        text = "".join(json.dumps(r) + "\n" for r in rows) + '{"step": 1'  # a line cut by a crash
+        (tmp_path / "eval" / f"seed_{seed}.jsonl").write_text(text)
+    summary = summarize_run(tmp_path, cfg)
+    assert summary["complete"] and summary["seeds"] == [0, 1, 2, 3, 4]
+    agg = summary["aggregate"]["avg_return"]
+    # IQM of 5 values trims floor(5/4) = 1 each side: mean(10, 20, 30) = 20.
+    assert agg["estimate"] == pytest.approx(20.0)
+    assert agg["mean"] == pytest.approx(32.0) and agg["n"] == 5
+    expected = stats.stratified_bootstrap_ci(np.array(finals), stats.iqm, confidence=0.95)
+    assert (agg["low"], agg["high"]) == (expected.low, expected.high)
+    assert agg["low"] <= 20.0 <= agg["high"]
+    assert summary["aggregate"]["avg_etr"]["estimate"] == pytest.approx(0.2)
+    table = format_table(summary)
+    assert "final return" in table and "20.000" in table and "early-termination rate" in table
+
+
+def test_summary_of_an_unfinished_run_is_marked_incomplete(tmp_path):
+    cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=2)
+    summary = summarize_run(tmp_path, cfg)
+    assert not summary["complete"] and summary["aggregate"] == {}
+    assert "no final evaluation" in format_table(summary)

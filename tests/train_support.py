@@ -1,0 +1,23 @@
+"""Shared set-up for the trainer tests: a private cache folder pre-filled with the smoke tracks.
+
+Generating even three tracks compiles the generator for ~30 s on CPU, so the tests ship the two
+tiny banks the smoke preset uses (training seed 0 and evaluation seed 1, three tracks each).
+"""
+
+import os
+import shutil
+from pathlib import Path
+
+DATA = Path(__file__).parent / "data"
+
+
+def prepare_cache(folder: Path) -> None:
+    """Point ``XRL_JAX_CACHE_DIR`` at ``folder`` and seed it with the shipped smoke track banks."""
+    os.environ["XRL_JAX_CACHE_DIR"] = str(folder)
+    from xrl_jax.train import track_cache_path
+
+    for seed in (0, 1):
+        target = track_cache_path(seed, 3)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if not target.exists():
+            shutil.copy(DATA / f"tracks_seed{seed}_size3.npz", target)

@@ -1,0 +1,256 @@
+"""Evaluation on fixed tracks (spec/algorithms.md §6.1) and the run's results: summary, table, config.
+
+Protocol: ``n`` episodes, episode ``i`` always on track ``i`` of a fixed evaluation bank, so every
+evaluation of every seed sees the same tracks. Each agent acts in its evaluation mode (§3.8: SAC,
+DSAC, XDSAC greedy; XSAC stochastic, from a separate key stream). All episodes run in parallel
+(a batch of envs without auto-reset) until each has terminated or been truncated; finished
+episodes are frozen by masks. Per episode: return, length, how it ended; early termination (ETR)
+= terminated with a last reward below −0.5, success (SR) = terminated otherwise.
+
+Over seeds the final score is reported as the IQM with a 95 % stratified bootstrap confidence
+interval (:mod:`xrl_jax.stats`), the paper's protocol.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import math
+import platform
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from xrl_jax import stats
+
+EARLY_TERMINATION_REWARD = -0.5
+EPISODE_FIELDS = ("return", "length", "terminated", "truncated", "last_reward", "track_velocity", "cones_hit")
+
+
+def make_evaluate(env, eval_params, agent, num_episodes: int):
+    """``evaluate(key, agent_state) -> per-episode arrays`` (each ``(num_episodes,)``), jittable.
+
+    ``eval_params`` holds a bank of at least ``num_episodes`` tracks; episode ``i`` uses track ``i``.
+    """
+    bank_size = int(eval_params.tracks.num_points.shape[0])
+    if bank_size < num_episodes:
+        raise ValueError(f"the evaluation bank has {bank_size} tracks, fewer than {num_episodes} episodes")
+    tracks = jax.tree.map(lambda leaf: leaf[:num_episodes, None], eval_params.tracks)
+    tables = getattr(eval_params, "tables", None)
+    tables = None if tables is None else jax.tree.map(lambda leaf: leaf[:num_episodes, None], tables)
+    max_steps = int(eval_params.max_steps)
+
+    def own_params(track, table):
+        changes = {"tracks": track} if table is None else {"tracks": track, "tables": table}
+        return eval_params.replace(**changes)
+
+    def reset_one(key, track, table):
+        return env.reset_env(key, own_params(track, table))
+
+    def step_one(key, state, action, track, table):
+        return env.step_env(key, state, action, own_params(track, table))
+
+    reset_all = jax.vmap(reset_one, in_axes=(0, 0, 0 if tables is not None else None))
+    step_all = jax.vmap(step_one, in_axes=(0, 0, 0, 0, 0 if tables is not None else None))
+
+    def evaluate(key, agent_state):
+        reset_key, key = jax.random.split(key)
+        obs, env_state = reset_all(jax.random.split(reset_key, num_episodes), tracks, tables)
+        float_dtype = jnp.result_type(float)
+        zeros = jnp.zeros((num_episodes,), float_dtype)
+        false = jnp.zeros((num_episodes,), bool)
+        record = {
+            "return": zeros,
+            "length": jnp.zeros((num_episodes,), jnp.int32),
+            "terminated": false,
+            "truncated": false,
+            "last_reward": zeros,
+            "track_velocity": zeros,
+            "cones_hit": jnp.zeros((num_episodes,), jnp.int32),
+        }
+
+        def running(carry):
+            _, _, done, _, _, t = carry
+            return ~jnp.all(done) & (t < max_steps + 1)
+
+        def body(carry):
+            obs, env_state, done, record, key, t = carry
+            key, act_key, step_key = jax.random.split(key, 3)
+            action = agent.act(act_key, agent_state, obs, "eval")
+            obs, env_state, reward, terminated, truncated, info = step_all(
+                jax.random.split(step_key, num_episodes), env_state, action, tracks, tables
+            )
+            live = ~done
+
+            def keep(new, old):
+                return jnp.where(live, new, old).astype(old.dtype)
+
+            record = {
+                "return": keep(record["return"] + reward, record["return"]),
+                "length": keep(record["length"] + 1, record["length"]),
+                "terminated": keep(terminated, record["terminated"]),
+                "truncated": keep(truncated, record["truncated"]),
+                "last_reward": keep(reward, record["last_reward"]),
+                "track_velocity": keep(info["avg_track_velocity"], record["track_velocity"]),
+                "cones_hit": keep(info["cones_hit"], record["cones_hit"]),
+            }
+            return obs, env_state, done | terminated | truncated, record, key, t + 1
+
+        carry = (obs, env_state, false, record, key, jnp.zeros((), jnp.int32))
+        return jax.lax.while_loop(running, body, carry)[3]
+
+    return evaluate
+
+
+def summarize_episodes(episodes: dict[str, Any]) -> dict[str, Any]:
+    """The §6.1 averages of one seed's evaluation, plus the per-episode returns (host side)."""
+    returns = np.asarray(episodes["return"], np.float64)
+    terminated = np.asarray(episodes["terminated"], bool)
+    early = terminated & (np.asarray(episodes["last_reward"]) < EARLY_TERMINATION_REWARD)
+    return {
+        "avg_return": float(returns.mean()),
+        "avg_episode_length": float(np.mean(episodes["length"])),
+        "avg_etr": float(early.mean()),
+        "avg_sr": float((terminated & ~early).mean()),
+        "avg_track_velocity": float(np.mean(episodes["track_velocity"])),
+        "avg_cones_hit": float(np.mean(episodes["cones_hit"])),
+        "episode_returns": [round(float(r), 6) for r in returns],
+    }
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    if not Path(path).exists():
+        return []
+    rows = []
+    for line in Path(path).read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return rows
+
+
+SUMMARY_METRICS = (
+    ("avg_return", "final return"),
+    ("avg_etr", "early-termination rate"),
+    ("avg_episode_length", "episode length"),
+)
+
+
+def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
+    """Final evaluation of every seed and, over seeds, the IQM with its 95 % stratified bootstrap CI."""
+    out = Path(out)
+    finals: dict[int, dict] = {}
+    for seed in range(cfg.num_seeds):
+        rows = [
+            r for r in read_jsonl(out / "eval" / f"seed_{seed}.jsonl") if r.get("step") == cfg.total_steps
+        ]
+        if rows:
+            finals[seed] = rows[-1]
+    summary: dict[str, Any] = {
+        "env": cfg.env,
+        "algo": cfg.algo,
+        "preset": cfg.preset,
+        "steps": cfg.total_steps,
+        "seeds": sorted(finals),
+        "complete": len(finals) == cfg.num_seeds,
+        "per_seed": {
+            str(s): {k: v for k, v in r.items() if k != "episode_returns"} for s, r in finals.items()
+        },
+        "aggregate": {},
+    }
+    if finals:
+        for key, _ in SUMMARY_METRICS:
+            scores = np.array([finals[s][key] for s in sorted(finals)], np.float64)
+            interval = stats.stratified_bootstrap_ci(scores, stats.iqm, confidence=0.95)
+            summary["aggregate"][key] = {
+                **interval.as_dict(),
+                "mean": float(scores.mean()),
+                "n": int(scores.size),
+            }
+    return summary
+
+
+def format_table(summary: dict[str, Any]) -> str:
+    """A plain-text table of the aggregate scores (IQM and 95 % stratified bootstrap CI over seeds)."""
+    title = f"{summary['env']} / {summary['algo']} ({summary['preset']}), {summary['steps']} steps per seed"
+    lines = [title, f"{'metric':<24} {'IQM':>10} {'95% CI':>22} {'mean':>10} {'seeds':>6}"]
+    for key, label in SUMMARY_METRICS:
+        agg = summary["aggregate"].get(key)
+        if agg is None:
+            continue
+        ci = f"[{agg['low']:.3f}, {agg['high']:.3f}]"
+        lines.append(f"{label:<24} {agg['estimate']:>10.3f} {ci:>22} {agg['mean']:>10.3f} {agg['n']:>6d}")
+    if not summary["aggregate"]:
+        lines.append("(no final evaluation yet)")
+    return "\n".join(lines)
+
+
+def _git_commit(repo: Path) -> dict[str, Any]:
+    def git(*args):
+        result = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=10)
+        return result.stdout.strip() if result.returncode == 0 else None
+
+    try:
+        commit = git("rev-parse", "HEAD")
+        status = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
+    return {"commit": commit, "dirty": None if status is None else bool(status)}
+
+
+def versions() -> dict[str, str | None]:
+    import importlib.metadata as md
+
+    out: dict[str, str | None] = {"python": platform.python_version()}
+    for name in ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "distrax", "numpy", "xrl-jax"):
+        try:
+            out[name] = md.version(name)
+        except md.PackageNotFoundError:
+            out[name] = None
+    import envs
+
+    out["envs"] = envs.__version__
+    return out
+
+
+def run_metadata(argv: list[str] | None = None) -> dict[str, Any]:
+    """Versions, git commit, device and command line: everything needed to reproduce the run."""
+    device = jax.devices()[0]
+    return {
+        "versions": versions(),
+        "git": _git_commit(Path(__file__).resolve().parents[1]),
+        "device": {"backend": jax.default_backend(), "kind": getattr(device, "device_kind", str(device))},
+        "command": [sys.executable, *(sys.argv if argv is None else argv)],
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def config_document(cfg, argv: list[str] | None = None) -> dict[str, Any]:
+    """The content of ``config.json``: the fully resolved config (incl. resolved agent defaults)."""
+    from xrl_jax.agents import make_hparams
+
+    agent = cfg.agent
+    action_size = 12 if agent.is_discrete else 3
+    hp = make_hparams(agent, action_size)
+    resolved = {
+        "alpha_lr": agent.resolved_alpha_lr(),
+        "epsilon_random": agent.resolved_epsilon_random(),
+        "target_entropy": float(hp.target_entropy),
+        "log_std_min": agent.resolved_log_std_min(),
+        "env_name": cfg.env_name,
+        "buffer_layout": cfg.buffer_layout,
+        "updates_per_seed": max(0, cfg.total_steps - cfg.warmup_steps),
+    }
+    doc = {"config": cfg.to_dict(), "resolved": resolved, **run_metadata(argv)}
+    json.dumps(doc)  # fail early on anything not serialisable
+    return doc
+
+
+def isfinite_or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None
