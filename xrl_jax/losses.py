@@ -209,18 +209,13 @@ def xdsac_actor_loss(
     `probs` (B, N): the **mixture** π(a|s) = Σ_o w_o q_o(a) (H is the mixture's entropy, not the
     components'); `weights` (B, O); `q` (n_critics, B, N), averaged over critics as in DSAC.
     """
-    alpha = jax.lax.stop_gradient(alpha)
     kappa = jax.lax.stop_gradient(kappa)
-    mean_q = jnp.mean(q, axis=0)
-    entropy = categorical_entropy(probs)
+    dsac_loss, aux = dsac_actor_loss(probs, q, alpha)
     mixture_entropy = categorical_entropy(weights)
-    loss = -jnp.mean(jnp.sum(probs * mean_q, axis=-1) + alpha * entropy + kappa * mixture_entropy)
-    entropy = jax.lax.stop_gradient(entropy)
+    loss = dsac_loss - kappa * jnp.mean(mixture_entropy)
     return loss, {
+        **aux,
         "loss_actor": loss,
-        "entropy": entropy,
-        "entropy_mean": jnp.mean(entropy),
-        "entropy_std": jnp.std(entropy),
         "mixture_entropy": jnp.mean(jax.lax.stop_gradient(mixture_entropy)),
         "kappa": kappa,
     }

@@ -614,6 +614,19 @@ class ContinuousQHead(nn.Module):
         return nn.Dense(1, name="q")(h)[..., 0]
 
 
+def critic_ensemble(head: type[nn.Module], num_critics: int) -> type[nn.Module]:
+    """``num_critics`` independently initialised copies of ``head``, parameters stacked on axis 0,
+    all fed the same inputs; outputs get a leading critic axis."""
+    return nn.vmap(
+        head,
+        variable_axes={"params": 0},
+        split_rngs={"params": True},
+        in_axes=None,
+        out_axes=0,
+        axis_size=num_critics,
+    )
+
+
 class ContinuousCritic(nn.Module):
     """SAC / XSAC critic ensemble (spec §2.1, §4.5): one shared extractor F, ``num_critics`` heads.
 
@@ -629,15 +642,7 @@ class ContinuousCritic(nn.Module):
     def setup(self):
         if not self.widths:
             raise ValueError("critic widths must not be empty")
-        ensemble = nn.vmap(
-            ContinuousQHead,
-            variable_axes={"params": 0},
-            split_rngs={"params": True},
-            in_axes=None,
-            out_axes=0,
-            axis_size=self.num_critics,
-        )
-        self.heads = ensemble(tuple(self.widths), name="heads")
+        self.heads = critic_ensemble(ContinuousQHead, self.num_critics)(tuple(self.widths), name="heads")
 
     def features(self, obs: Observation) -> Array:
         return self.extractor(obs)
@@ -676,14 +681,7 @@ class DiscreteCritic(nn.Module):
     duelling: bool = True
 
     def setup(self):
-        ensemble = nn.vmap(
-            DiscreteQHead,
-            variable_axes={"params": 0},
-            split_rngs={"params": True},
-            in_axes=None,
-            out_axes=0,
-            axis_size=self.num_critics,
-        )
+        ensemble = critic_ensemble(DiscreteQHead, self.num_critics)
         self.heads = ensemble(tuple(self.widths), self.num_actions, self.duelling, name="heads")
 
     def features(self, obs: Observation) -> Array:
