@@ -8,6 +8,7 @@ import pytest
 from xrl_jax.buffer import (
     CONE_SET_CODEC,
     buffer_add,
+    buffer_add_packed,
     buffer_init,
     buffer_sample,
     bytes_per_transition,
@@ -154,3 +155,40 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="needs next_obs"):
         zeros = jnp.zeros(NUM_ENVS, bool)
         buffer_add(explicit, stacked_obs(0), jnp.zeros((NUM_ENVS, 2)), jnp.zeros(NUM_ENVS), zeros, zeros)
+
+
+def test_packed_add_keeps_only_valid_transitions_in_order():
+    """Multi-agent adds: the valid transitions of each call land in consecutive rows, in order,
+    wrap around the ring, and sampling returns only them (no holes, no redraws needed)."""
+    add = jax.jit(buffer_add_packed)
+    buffer = buffer_init(
+        {"state": np.zeros(2, np.float32)}, np.zeros(1, np.float32), 10, 1, layout="explicit"
+    )
+    written = []
+    for call in range(5):
+        ids = np.arange(4) + 4 * call
+        valid = jnp.asarray((ids % 3) != 1)
+        obs = {"state": jnp.asarray(np.stack([ids, ids], 1), jnp.float32)}
+        next_obs = {"state": obs["state"] + 0.5}
+        buffer = add(
+            buffer,
+            obs,
+            jnp.asarray(ids[:, None], jnp.float32),
+            jnp.asarray(ids, jnp.float32),
+            jnp.zeros(4, bool),
+            next_obs,
+            valid,
+        )
+        written += [int(i) for i in ids if i % 3 != 1]
+    assert int(buffer.filled_rows) == 10
+    newest_ten = written[-10:]
+    stored = np.asarray(buffer.reward[:, 0])
+    assert sorted(stored.tolist()) == sorted(float(i) for i in newest_ten)
+    assert int(buffer.write_row) == len(written) % 10
+    batch = sample_batch(buffer, jax.random.PRNGKey(0), 64)
+    np.testing.assert_array_equal(batch["obs"]["state"][:, 0], batch["reward"])
+    np.testing.assert_array_equal(batch["next_obs"]["state"][:, 0], batch["reward"] + 0.5)
+    assert set(np.asarray(batch["reward"]).astype(int)) <= set(newest_ten)
+    compact = buffer_init({"state": np.zeros(2, np.float32)}, np.zeros(1, np.float32), 10, 1)
+    with pytest.raises(ValueError, match="explicit"):
+        buffer_add_packed(compact, obs, jnp.zeros((4, 1)), jnp.zeros(4), jnp.zeros(4, bool), next_obs, valid)

@@ -194,6 +194,47 @@ def buffer_add(
     )
 
 
+def buffer_add_packed(
+    buffer: ReplayBuffer,
+    obs: Mapping[str, jax.Array],
+    action: jax.Array,
+    reward: jax.Array,
+    terminated: jax.Array,
+    next_obs: Mapping[str, jax.Array],
+    valid: jax.Array,
+) -> ReplayBuffer:
+    """Append only the ``valid`` ones of a flat batch of ``n`` transitions, packed one per row.
+
+    For multi-agent rollouts, where each env step yields a varying number of agent transitions (the
+    agents alive at the start of the step): the valid ones go to consecutive rows, so the buffer holds
+    no holes and sampling needs no redraws. Needs the explicit layout with ``num_envs == 1``; every
+    leading-axis-``n`` input is one transition. Transitions flagged truncated must be passed with
+    ``terminated=False`` (they are bootstrapped from ``next_obs``).
+    """
+    if buffer.layout != "explicit" or buffer.num_envs != 1:
+        raise ValueError("buffer_add_packed needs an explicit-layout buffer with num_envs=1")
+    count = valid.shape[0]
+    if count > buffer.rows:
+        raise ValueError(f"{count} transitions per add exceed the buffer's {buffer.rows} rows")
+    offset = jnp.cumsum(valid.astype(jnp.int32)) - 1
+    target = jnp.where(valid, (buffer.write_row + offset) % buffer.rows, buffer.rows)  # rows: dropped
+    added = jnp.sum(valid, dtype=jnp.int32)
+
+    def put(store, value):
+        return store.at[target, 0].set(value.astype(store.dtype), mode="drop")
+
+    return buffer.replace(
+        obs=jax.tree.map(put, buffer.obs, encode_obs(obs, buffer.codecs)),
+        next_obs=jax.tree.map(put, buffer.next_obs, encode_obs(next_obs, buffer.codecs)),
+        action=put(buffer.action, action),
+        reward=put(buffer.reward, reward),
+        terminated=put(buffer.terminated, terminated),
+        valid=put(buffer.valid, jnp.ones_like(valid)),
+        write_row=(buffer.write_row + added) % buffer.rows,
+        filled_rows=jnp.minimum(buffer.filled_rows + added, buffer.rows),
+    )
+
+
 def readable_rows(buffer: ReplayBuffer) -> jax.Array:
     """Rows that can be sampled: in the compact layout the newest row still lacks its next obs."""
     if buffer.layout == "compact":
