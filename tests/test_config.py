@@ -91,6 +91,11 @@ def test_smoke_preset_is_tiny_with_paper_optimisation():
         ({"algo": "xdsac", "duelling": False}, "duelling"),
         ({"epsilon_random": 2.0}, "epsilon_random"),
         ({"log_std_min": 3.0}, "log_std_min"),
+        ({"algo": "sac", "neutral_object": True}, "neutral_object only applies"),
+        ({"algo": "dsac", "neutral_object": True}, "neutral_object only applies"),
+        ({"algo": "xsac", "neutral_object": 1}, "neutral_object must be a bool"),
+        ({"fe_item_depth": 0}, "fe_item_depth must be a positive integer"),
+        ({"fe_set_depth": 0}, "fe_set_depth must be a positive integer"),
     ],
 )
 def test_validation_errors_are_clear(changes, message):
@@ -139,3 +144,40 @@ def test_configs_are_frozen_and_hashable():
     with pytest.raises(AttributeError):
         cfg.kappa = 0.5  # type: ignore[misc]
     assert hash(cfg) == hash(paper_config("tracking", "xsac"))
+
+
+@pytest.mark.parametrize(
+    "algo, lr, actor_depth, clip_norm",
+    [("sac", 3e-4, 2, None), ("dsac", 1e-4, 2, 10.0), ("xsac", 3e-4, 3, 10.0), ("xdsac", 3e-4, 3, 10.0)],
+)
+def test_intersection_paper_table(algo, lr, actor_depth, clip_norm):
+    """carenv-intersection.md §8.7; the baseline actors' depth is unspecified there → the critics' 2."""
+    cfg = paper_config("intersection", algo)
+    assert "intersection" in ENVS
+    assert cfg.actor_lr == cfg.critic_lr == lr and cfg.clip_norm == clip_norm
+    assert (cfg.actor_width, cfg.actor_depth, cfg.critic_width, cfg.critic_depth) == (
+        256,
+        actor_depth,
+        256,
+        2,
+    )
+    assert cfg.auto_alpha is False and cfg.init_alpha == 0.015  # fixed α for all four agents
+    assert (cfg.gamma, cfg.tau, cfg.n_critics, cfg.critic_loss) == (0.95, 0.005, 2, "huber")
+    assert cfg.feature_extractor == "deepset" and cfg.fe_width == 256 and cfg.fourier_scale is None
+    assert (cfg.fe_item_depth, cfg.fe_set_depth) == (3, 2)
+    assert cfg.neutral_object is cfg.is_mixture and cfg.duelling
+    if cfg.is_mixture:
+        assert cfg.kappa == 1e-3 and cfg.components_per_object == 1 and cfg.weight_depth is None
+    assert cfg.resolved_epsilon_random() == (0.05 if cfg.is_discrete else 0.0)
+    smoke = preset("smoke", "intersection", algo)
+    assert smoke.actor_width < 64 and smoke.fe_width < 64
+    for field in ("neutral_object", "auto_alpha", "init_alpha", "clip_norm", "actor_lr", "fourier_scale"):
+        assert getattr(smoke, field) == getattr(cfg, field)
+
+
+def test_racing_and_tracking_presets_keep_their_deep_set_and_no_neutral_object():
+    for env in ("country_road", "tracking"):
+        for algo in ALGOS:
+            cfg = paper_config(env, algo)
+            assert (cfg.fe_item_depth, cfg.fe_set_depth, cfg.neutral_object) == (3, 2, False)
+            assert cfg.auto_alpha and cfg.clip_norm is None

@@ -51,12 +51,16 @@ def small_obs():
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("env", ["country_road", "tracking"])
+@pytest.mark.parametrize("env", ["country_road", "tracking", "intersection"])
 @pytest.mark.parametrize("algo", N.ALGORITHMS)
 def test_output_shapes_with_leading_batch_axes(env, algo):
     nets = N.make_networks(N.make_network_config(env, algo, **TINY))
     obs = nets.dummy_observation(BATCH)
-    o, a_dim, n = nets.config.obs_shape.num_objects, 3, 12
+    # the intersection X actors carry the neutral object in front of the 8 vehicle slots
+    o, a_dim, n = nets.config.obs_shape.num_objects + int(nets.config.neutral_object), 3, 12
+    assert o == (
+        9 if (env, nets.config.explainable) == ("intersection", True) else nets.config.obs_shape.num_objects
+    )
     actor_params = jax.eval_shape(nets.init_actor, KEY)
     critic_params = jax.eval_shape(nets.init_critic, KEY)
     out = jax.eval_shape(nets.actor.apply, actor_params, obs)
@@ -534,3 +538,77 @@ def test_fast_path_xla_flops_match_paper_table_1():
         if not cost or "flops" not in cost:
             pytest.skip("backend gives no cost analysis")
         assert abs(cost["flops"] / paper - 1) < 0.01
+
+
+# ---------------------------------------------------------------------------------------------
+# Multi-agent intersection (algorithms.md Appendix A, carenv-intersection.md §8.7)
+# ---------------------------------------------------------------------------------------------
+
+
+def test_intersection_observation_layout_and_defaults():
+    shape = N.ENV_OBSERVATIONS["intersection"]
+    assert shape == N.ObservationShape("vehicles_set", 8, 7, 66)
+    obs = N.dummy_observation(shape, (2, 8))
+    assert N.find_set_key(obs) == "vehicles_set"
+    assert obs["vehicles_set"].shape == (2, 8, 8, 7) and obs["state"].shape == (2, 8, 66)
+    for algo in N.ALGORITHMS:
+        config = N.make_network_config("intersection", algo)
+        assert (config.extractor, config.fe_width, config.fourier_scale) == ("deepset", 256, None)
+        assert (config.fe_item_depth, config.fe_set_depth, config.critic_depth) == (3, 2, 2)
+        assert config.actor_depth == (3 if config.explainable else 2)
+        assert config.neutral_object == config.neutral_slot == config.explainable
+        assert config.num_mixture_objects == (9 if config.explainable else 1)
+    with pytest.raises(ValueError, match="neutral_object"):
+        N.make_network_config("intersection", "sac", neutral_object=True)
+
+
+def test_intersection_critic_extractor_parameter_count():
+    """Deep Set 256 without Fourier features: items (6 features, present dropped) → 3 × Dense(256), sum,
+    set encoder 2 × Dense(256); state Dense(66 → 256); 512 features (vehicles_set then state)."""
+    width = 256
+    item = (6 * width + width) + 2 * (width * width + width)
+    set_encoder = 2 * (width * width + width)
+    state = 66 * width + width
+    extractor = N.make_extractor(N.make_network_config("intersection", "xsac"))
+    obs = N.dummy_observation(N.ENV_OBSERVATIONS["intersection"], (3,))
+    params = jax.eval_shape(extractor.init, KEY, obs)
+    assert N.count_params(params) == item + set_encoder + state
+    assert "FourierFeatures_0" not in str(params) and "linear" not in params["params"]["deep_set"]["item_0"]
+    assert jax.eval_shape(extractor.apply, params, obs).shape == (3, 2 * width)
+    # critic: extractor + 2 heads of (512 + 3 → 256 → 256 → 1)
+    heads = 2 * ((2 * width + 3) * width + width + width * width + width + width + 1)
+    assert count("intersection", "sac", "critic") == item + set_encoder + state + heads
+
+
+def test_deep_set_depths_are_configurable():
+    extractor = N.DeepSetExtractor(width=4, item_depth=1, set_depth=0, fourier_scale=None, state_width=3)
+    obs = random_observation(4, (), 5, 5, 2)
+    params = jax.eval_shape(extractor.init, KEY, obs)
+    assert N.count_params(params) == (4 * 4 + 4) + (6 * 3 + 3)
+    config = N.make_network_config("country_road", "sac", fe_item_depth=2, fe_set_depth=1, **TINY)
+    deep_set = jax.eval_shape(N.make_networks(config).init_critic, KEY)["params"]["extractor"]["deep_set"]
+    assert sorted(deep_set) == ["item_0", "item_1", "set_encoder"]
+    assert sorted(deep_set["set_encoder"]) == ["dense_0"]
+    with pytest.raises(ValueError, match="fe_item_depth"):
+        N.make_network_config("country_road", "sac", fe_item_depth=0)
+
+
+def test_neutral_object_is_a_state_only_component():
+    """With no vehicle present the neutral object takes all the weight; it never depends on the set."""
+    config = N.make_network_config("intersection", "xdsac", **TINY)
+    nets = N.make_networks(config)
+    params = random_params(nets.actor.init, nets.dummy_observation())
+    apply = jax.jit(nets.actor.apply)
+    rng = np.random.default_rng(5)
+    state = jnp.asarray(rng.uniform(-1, 1, (4, 66)), jnp.float32)
+    vehicles = np.zeros((4, 8, 7), np.float32)
+    empty = apply(params, {"state": state, "vehicles_set": jnp.asarray(vehicles)})
+    np.testing.assert_array_equal(empty.weights, np.eye(9)[[0] * 4])
+    vehicles[:, :3] = rng.uniform(-1, 1, (4, 3, 7))
+    vehicles[:, :3, 0] = 1.0
+    full = apply(params, {"state": state, "vehicles_set": jnp.asarray(vehicles)})
+    np.testing.assert_array_equal(full.present[:, :4], True)
+    np.testing.assert_array_equal(full.present[:, 4:], False)
+    np.testing.assert_allclose(jnp.sum(full.weights, -1), 1.0, rtol=1e-6)
+    assert bool(jnp.all(full.weights[:, 0] > 0)) and bool(jnp.all(full.weights[:, 0] < 1))
+    np.testing.assert_allclose(full.logits[:, 0], empty.logits[:, 0], rtol=1e-6)  # neutral head: state only

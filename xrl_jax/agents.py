@@ -9,7 +9,9 @@ methods, all jittable and vmappable over a leading seed axis of the state:
 * ``policy(actor_params, obs)``: the action distribution (a ``distributions`` mixture), i.e. the
   explanation for the X agents.
 
-Batch layout expected by ``update`` (one leading batch axis B; the buffer produces it)::
+Batch layout expected by ``update`` (one leading batch axis B; the buffer produces it; multi-agent
+transitions, e.g. the intersection's (E, 8) per-slot ones, are flattened into B — every row is one
+agent's own observation, parameters are shared)::
 
     {
       "obs":        {"state": (B, S), "<name>_set": (B, O, F_obj)},   # float
@@ -138,12 +140,15 @@ def _network_config(config: AgentConfig, obs_shape: ObservationShape, action_siz
         critic_depth=config.critic_depth,
         weight_depth=config.actor_depth if config.weight_depth is None else config.weight_depth,
         num_components=config.components_per_object,
+        neutral_object=config.neutral_object,
         num_critics=config.n_critics,
         duelling=config.duelling,
         action_dim=action_size if not config.is_discrete else 1,
         num_actions=action_size if config.is_discrete else 1,
         extractor=config.feature_extractor,
         fe_width=config.fe_width,
+        fe_item_depth=config.fe_item_depth,
+        fe_set_depth=config.fe_set_depth,
         fourier_scale=config.fourier_scale,
         pe_freqs=config.pe_freqs,
     )
@@ -179,8 +184,22 @@ class Agent:
         return self.config.is_discrete
 
     @property
+    def neutral_object(self) -> bool:
+        """Whether the X actor prepends the neutral object (then explanation index 0 is the state)."""
+        return self.networks.config.neutral_object
+
+    @property
+    def num_mixture_objects(self) -> int:
+        """Objects in the policy's mixture: O (+1 with the neutral object) for X agents, 1 otherwise.
+
+        ``policy(...).weights`` has ``num_mixture_objects * components_per_object`` entries for X agents.
+        """
+        return self.networks.config.num_mixture_objects
+
+    @property
     def _actor_tx(self) -> optax.GradientTransformation:
-        # Reference: SAC clips only the critic; DSAC/XSAC/XDSAC clip both (§1.4). Never α.
+        # Reference (§1.4): with clip_norm set, SAC clips only the critic; DSAC/XSAC/XDSAC clip actor and
+        # critic; α is never clipped. The intersection SAC preset sets clip_norm=None: no clipping at all.
         return _adam(None if self.algo == "sac" else self.config.clip_norm)
 
     @property

@@ -15,7 +15,7 @@ import typing
 from typing import Any
 
 ALGOS = ("sac", "dsac", "xsac", "xdsac")
-ENVS = ("country_road", "tracking")
+ENVS = ("country_road", "tracking", "intersection")
 PRESETS = ("paper", "smoke")
 CONTINUOUS_ALGOS = ("sac", "xsac")
 DISCRETE_ALGOS = ("dsac", "xdsac")
@@ -51,10 +51,15 @@ class AgentConfig:
     n_critics: int = 2
     feature_extractor: str = "deepset"  # critic FE (and the baseline actors' FE): deepset | flat_pe
     fe_width: int = 128  # Deep Set width W and state-encoder width
+    fe_item_depth: int = 3  # Deep Set item-encoder layers (the Fourier / first Dense layer included)
+    fe_set_depth: int = 2  # Deep Set set-encoder layers after the sum
     fourier_scale: float | None = 30.0  # learned Fourier features scale b; None = plain Dense first layer
     pe_freqs: int = 4  # positional-encoding frequencies of the tracking extractor
     duelling: bool = True  # discrete critics only; XDSAC always duelling (§2.4)
     components_per_object: int = 1  # C; X agents only
+    # X agents only: prepend an always-present all-zero "neutral" object (a state-only component), as the
+    # multi-agent intersection actors do (spec Appendix A); the explanation then has O + 1 objects.
+    neutral_object: bool = False
     weight_depth: int | None = None  # φ_d (paper Table I): 1-based hidden layer feeding φ; None = last
     uniform_mixture: bool = False  # ablation of §3.1.6: no φ, uniform weights over present objects
     log_std_min: float | None = None  # None = per-algo default: SAC −20, XSAC −5 (§7.1)
@@ -132,7 +137,15 @@ def _validate(cfg: AgentConfig) -> None:
         raise _error(f"unknown critic_loss {cfg.critic_loss!r}; valid: {', '.join(CRITIC_LOSSES)}")
     if cfg.truncation not in TRUNCATION_MODES:
         raise _error(f"unknown truncation {cfg.truncation!r}; valid: {', '.join(TRUNCATION_MODES)}")
-    for name in ("actor_width", "actor_depth", "critic_width", "critic_depth", "fe_width"):
+    for name in (
+        "actor_width",
+        "actor_depth",
+        "critic_width",
+        "critic_depth",
+        "fe_width",
+        "fe_item_depth",
+        "fe_set_depth",
+    ):
         value = getattr(cfg, name)
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             raise _error(f"{name} must be a positive integer, got {value!r}")
@@ -145,6 +158,12 @@ def _validate(cfg: AgentConfig) -> None:
     if cfg.weight_depth is not None and not 1 <= cfg.weight_depth <= cfg.actor_depth:
         raise _error(
             f"weight_depth (φ_d) must lie in 1..actor_depth={cfg.actor_depth}, got {cfg.weight_depth}"
+        )
+    if not isinstance(cfg.neutral_object, bool):
+        raise _error(f"neutral_object must be a bool, got {cfg.neutral_object!r}")
+    if cfg.neutral_object and not cfg.is_mixture:
+        raise _error(
+            f"neutral_object only applies to the mixture actors (xsac, xdsac); {cfg.algo} has no object slots"
         )
     if cfg.algo == "xdsac" and not cfg.duelling:
         raise _error("XDSAC always uses a duelling critic (spec §2.4); duelling=False is only for DSAC")
@@ -186,7 +205,10 @@ def _check_finite(name: str, value: Any, positive: bool = False) -> None:
 
 
 def _paper(env: str, algo: str) -> AgentConfig:
-    """The resolved racing/tracking configs of §5.7 / §4.7 (country_road = the paper's racing)."""
+    """The resolved configs of §5.7 / §4.7 (country_road = the paper's racing) and, for the multi-agent
+    intersection, the released marl configs (carenv-intersection.md §8.7, algorithms.md Appendix A)."""
+    if env == "intersection":
+        return _paper_intersection(algo)
     racing = env == "country_road"
     is_x = algo in MIXTURE_ALGOS
     lr = 3e-4 if (not racing and algo in CONTINUOUS_ALGOS) else 1e-4
@@ -212,6 +234,48 @@ def _paper(env: str, algo: str) -> AgentConfig:
         init_alpha=0.1,
         # All four discrete configs set 1.24 explicitly; continuous ones use the −A default.
         target_entropy=1.24 if algo in DISCRETE_ALGOS else None,
+    )
+
+
+# Intersection entropy coefficient: fixed for all four agents (carenv-intersection.md §8.7).
+INTERSECTION_ALPHA = 0.015
+
+
+def _paper_intersection(algo: str) -> AgentConfig:
+    """Multi-agent intersection (carenv-intersection.md §8.7).
+
+    Fixed α = 0.015 (no α learning, so the target entropy is unused); lr 3e-4 (DSAC 1e-4); global-norm
+    clip 10 for DSAC / XDSAC / XSAC and none for SAC; X actors 3 × 256 per object with the neutral object;
+    critics 2 × 256 (duelling for the discrete ones) on a Deep Set of width 256 without Fourier features
+    (item encoder 3 layers, set encoder 2) ⊕ Dense(256) of the state. The baseline actors' MLP depth is
+    not given by the spec; they use the critics' 2 × 256 on their own copy of that extractor.
+    """
+    is_x = algo in MIXTURE_ALGOS
+    lr = 1e-4 if algo == "dsac" else 3e-4
+    return AgentConfig(
+        algo=algo,
+        actor_width=256,
+        actor_depth=3 if is_x else 2,
+        critic_width=256,
+        critic_depth=2,
+        feature_extractor="deepset",
+        fe_width=256,
+        fe_item_depth=3,
+        fe_set_depth=2,
+        fourier_scale=None,
+        duelling=True,
+        components_per_object=1,
+        neutral_object=is_x,
+        weight_depth=None,
+        clip_norm=None if algo == "sac" else 10.0,
+        auto_alpha=False,
+        init_alpha=INTERSECTION_ALPHA,
+        actor_lr=lr,
+        critic_lr=lr,
+        gamma=0.95,
+        tau=0.005,
+        kappa=1e-3,
+        target_entropy=None,
     )
 
 

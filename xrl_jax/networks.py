@@ -236,10 +236,12 @@ class DeepSet(nn.Module):
 
 
 class DeepSetExtractor(nn.Module):
-    """Country Road critic / baseline-actor extractor (spec §4.4, ``deepset``).
+    """Country Road / intersection critic and baseline-actor extractor (spec §4.4, ``deepset``).
 
     Concatenates, in sorted key order (``cones_set`` then ``state``), the LFF Deep Set of the set and
-    Dense(state_width) + ReLU of the state: 128 + 128 = 256 features by default.
+    Dense(state_width) + ReLU of the state: 128 + 128 = 256 features by default. The intersection
+    (Appendix A, carenv-intersection.md §8.7) uses width 256 and no Fourier layer (``vehicles_set``
+    then ``state``: 256 + 256 features); the layer counts (item 3, set 2) are the same.
     """
 
     width: int = 128
@@ -712,6 +714,8 @@ class ObservationShape:
 ENV_OBSERVATIONS: dict[str, ObservationShape] = {
     "country_road": ObservationShape("cones_set", 100, 5, 6),
     "tracking": ObservationShape("trajectory_set", 25, 4, 6),
+    # per agent: 8 other-vehicle slots (present, rel x/y, vel x/y, dir cos/sin) and odometry + route
+    "intersection": ObservationShape("vehicles_set", 8, 7, 66),
 }
 ALGORITHMS = ("sac", "dsac", "xsac", "xdsac")
 
@@ -730,12 +734,17 @@ class NetworkConfig:
     weight_depth: int  # φ_d, 1-based hidden layer feeding the mixture logit (X actors only)
     num_components: int = 1
     uniform_mixture: bool = False  # ablation (spec §3.1.6), off in every config
+    # X actors only: an always-present all-zero object row is prepended (spec §4.1 / Appendix A), so
+    # the mixture has obs_shape.num_objects + 1 objects and object index 0 is the state-only component.
+    neutral_object: bool = False
     num_critics: int = 2
     duelling: bool = True
     action_dim: int = 3
     num_actions: int = 12
     extractor: str = "deepset"  # "deepset" (Country Road) or "flat_pe" (tracking)
     fe_width: int = 128
+    fe_item_depth: int = 3  # Deep Set item-encoder layers, the Fourier / first Dense layer included
+    fe_set_depth: int = 2  # Deep Set set-encoder layers
     fourier_scale: float | None = 30.0
     pe_freqs: int = 4
 
@@ -747,9 +756,22 @@ class NetworkConfig:
     def explainable(self) -> bool:
         return self.algo in ("xsac", "xdsac")
 
+    @property
+    def neutral_slot(self) -> bool:
+        """Alias of ``neutral_object`` (the actors' argument name)."""
+        return self.neutral_object
+
+    @property
+    def num_mixture_objects(self) -> int:
+        """Objects of the X actors' mixture: O, plus one for the neutral object (1 for the baselines)."""
+        if not self.explainable:
+            return 1
+        return self.obs_shape.num_objects + int(self.neutral_object)
+
 
 def make_network_config(env: str, algo: str, **overrides: Any) -> NetworkConfig:
-    """Spec §4.7 / §5.7 sizes for ``env`` ∈ {country_road, tracking}, ``algo`` ∈ {sac, dsac, xsac, xdsac}.
+    """Spec §4.7 / §5.7 sizes for ``env`` ∈ {country_road, tracking, intersection}, ``algo`` ∈ {sac, dsac,
+    xsac, xdsac}; intersection per carenv-intersection.md §8.7 (baseline actors 2 × 256: not specified).
 
     Any field of NetworkConfig can be overridden (e.g. tiny widths for tests).
     """
@@ -760,9 +782,9 @@ def make_network_config(env: str, algo: str, **overrides: Any) -> NetworkConfig:
     unknown = set(overrides) - {f.name for f in dataclasses.fields(NetworkConfig)}
     if unknown:
         raise ValueError(f"unknown NetworkConfig fields {sorted(unknown)}")
-    racing = env == "country_road"
+    deep_set = env in ("country_road", "intersection")  # else tracking
     explainable = algo in ("xsac", "xdsac")
-    actor_depth = overrides.pop("actor_depth", 3 if (explainable or not racing) else 2)
+    actor_depth = overrides.pop("actor_depth", 3 if (explainable or env == "tracking") else 2)
     defaults = dict(
         env=env,
         algo=algo,
@@ -770,24 +792,46 @@ def make_network_config(env: str, algo: str, **overrides: Any) -> NetworkConfig:
         actor_width=256,
         actor_depth=actor_depth,
         critic_width=256,
-        critic_depth=2 if racing else 3,
+        critic_depth=2 if deep_set else 3,
         weight_depth=actor_depth,
-        extractor="deepset" if racing else "flat_pe",
+        extractor="deepset" if deep_set else "flat_pe",
     )
+    if env == "intersection":
+        defaults.update(fe_width=256, fourier_scale=None, neutral_object=explainable)
     defaults.update(overrides)
     config = NetworkConfig(**defaults)
+    validate_network_config(config)
+    return config
+
+
+def validate_network_config(config: NetworkConfig) -> None:
+    """Raise a clear error for inconsistent sizes / switches (called by the constructors)."""
     _resolve_weight_depth(config.weight_depth, config.actor_depth)
-    if algo == "xdsac" and not config.duelling:
+    if config.algo not in ALGORITHMS:
+        raise ValueError(f"unknown algo {config.algo!r}; expected one of {ALGORITHMS}")
+    if config.algo == "xdsac" and not config.duelling:
         raise ValueError("XDSAC always uses a duelling critic (spec §2.4)")
     if config.extractor not in ("deepset", "flat_pe"):
         raise ValueError(f"unknown extractor {config.extractor!r}; expected 'deepset' or 'flat_pe'")
-    return config
+    if config.fe_item_depth < 1 or config.fe_set_depth < 0:
+        raise ValueError(
+            f"fe_item_depth must be >= 1 and fe_set_depth >= 0, got {config.fe_item_depth}, "
+            f"{config.fe_set_depth}"
+        )
+    if config.neutral_object and not config.explainable:
+        raise ValueError(
+            f"neutral_object only applies to the mixture actors (xsac, xdsac), not {config.algo}"
+        )
 
 
 def make_extractor(config: NetworkConfig) -> nn.Module:
     if config.extractor == "deepset":
         return DeepSetExtractor(
-            width=config.fe_width, fourier_scale=config.fourier_scale, state_width=config.fe_width
+            width=config.fe_width,
+            item_depth=config.fe_item_depth,
+            set_depth=config.fe_set_depth,
+            fourier_scale=config.fourier_scale,
+            state_width=config.fe_width,
         )
     return FlatPEExtractor(num_freqs=config.pe_freqs)
 
@@ -820,6 +864,7 @@ class Networks:
 def make_networks(config: NetworkConfig) -> Networks:
     """Build the actor and critic of spec §4.6 (each with its own extractor where it has one)."""
     c = config
+    validate_network_config(c)
     critic_widths = (c.critic_width,) * c.critic_depth
     actor_widths = (c.actor_width,) * c.actor_depth
     set_key = c.obs_shape.set_key
@@ -835,6 +880,7 @@ def make_networks(config: NetworkConfig) -> Networks:
             c.weight_depth,
             c.num_components,
             set_key=set_key,
+            neutral_slot=c.neutral_object,
             uniform_mixture=c.uniform_mixture,
         )
     else:
@@ -844,6 +890,7 @@ def make_networks(config: NetworkConfig) -> Networks:
             c.actor_depth,
             c.weight_depth,
             set_key=set_key,
+            neutral_slot=c.neutral_object,
             uniform_mixture=c.uniform_mixture,
         )
     if c.continuous:
@@ -935,4 +982,5 @@ __all__ = [
     "present_mask",
     "tracking_index_feature",
     "trajectory_to_set",
+    "validate_network_config",
 ]
