@@ -3,7 +3,7 @@
 Quick start::
 
     import jax, envs
-    env, params = envs.make("tracking")            # or "country_road", "*_discrete"
+    env, params = envs.make("tracking")            # or "country_road", "intersection", "*_discrete"
     obs, state = env.reset(jax.random.PRNGKey(0), params)
     obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
 
@@ -27,6 +27,10 @@ _EXPORTS = {
     "VmapWrapper": "envs.core",
     "vmap_env": "envs.core",
     "CountryRoad": "envs.country_road",
+    "IntersectionEnv": "envs.intersection",
+    "IntersectionParams": "envs.intersection",
+    "IntersectionState": "envs.intersection",
+    "MULTI_AGENT_ENV_NAMES": "envs.registry",
     "DONE_REASONS": "envs.racing",
     "IDLING": "envs.racing",
     "LEFT_TRACK": "envs.racing",
@@ -65,6 +69,7 @@ __all__ = [
     "IDLING",
     "LEFT_TRACK",
     "MAX_TIME",
+    "MULTI_AGENT_ENV_NAMES",
     "AutoResetWrapper",
     "Box",
     "CountryRoad",
@@ -73,6 +78,9 @@ __all__ = [
     "Environment",
     "GymEnv",
     "GymVectorEnv",
+    "IntersectionEnv",
+    "IntersectionParams",
+    "IntersectionState",
     "RacingParams",
     "RacingState",
     "Track",

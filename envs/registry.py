@@ -6,6 +6,10 @@ Names:
   or Discrete(12) actions.
 * ``"tracking"`` / ``"tracking_discrete"``: centre-line lookahead (original ``racing_tracking`` with
   the paper's 25 points 2 m apart), Box(-1, 1, (3,)) or Discrete(12) actions.
+* ``"intersection"`` / ``"intersection_discrete"``: the multi-agent crossing (8 slots; per-agent
+  Box(-1, 1, (3,)) or Discrete(12) actions); overrides are the fields of
+  :class:`envs.intersection.IntersectionParams` (``max_vehicles``, ``episode_steps``, the quirk
+  flags ...).
 
 Overrides (keyword arguments):
 
@@ -26,12 +30,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import Any
 
 import jax
 
-from envs.core import default_float
+from envs.core import Environment, default_float
 from envs.country_road import CountryRoad
-from envs.racing import RacingEnv, RacingParams, with_bank, with_track
+from envs.racing import RacingParams, with_bank, with_track
 from envs.track import Track, make_track_bank
 from envs.tracking import Tracking
 from envs.vehicle import VehicleParams
@@ -44,7 +49,9 @@ _SCENARIOS = {
     "tracking": (Tracking, False),
     "tracking_discrete": (Tracking, True),
 }
-ENV_NAMES = tuple(_SCENARIOS)
+_MULTI_AGENT = {"intersection": False, "intersection_discrete": True}
+MULTI_AGENT_ENV_NAMES = tuple(_MULTI_AGENT)
+ENV_NAMES = tuple(_SCENARIOS) + MULTI_AGENT_ENV_NAMES
 
 _PARAM_FIELDS = tuple(
     f.name
@@ -57,6 +64,10 @@ _TRACKING_OPTIONS = ("lookahead_points",)
 
 def valid_overrides(name: str) -> tuple[str, ...]:
     """The keyword overrides ``make(name, ...)`` accepts."""
+    if name in _MULTI_AGENT:
+        from envs.intersection import IntersectionParams  # lazy: keeps single-agent imports light
+
+        return tuple(sorted(f.name for f in dataclasses.fields(IntersectionParams)))
     extra = _TRACKING_OPTIONS if _SCENARIOS[name][0] is Tracking else ()
     return tuple(sorted(_PARAM_FIELDS + _BUILD_OPTIONS + extra))
 
@@ -73,10 +84,12 @@ def track_bank(seed: int = 0, size: int = DEFAULT_BANK_SIZE) -> Track:
     return _cached_bank(int(seed), int(size), str(default_float()))
 
 
-def make(name: str, **overrides) -> tuple[RacingEnv, RacingParams]:
+def make(name: str, **overrides) -> tuple[Environment, Any]:
     """Build a scenario and its params; see the module docstring for names and overrides."""
-    if name not in _SCENARIOS:
+    if name not in _SCENARIOS and name not in _MULTI_AGENT:
         raise ValueError(f"unknown env name {name!r}; valid names: {', '.join(ENV_NAMES)}")
+    if name in _MULTI_AGENT:
+        return _make_intersection(name, overrides)
     cls, discrete = _SCENARIOS[name]
     valid = valid_overrides(name)
     unknown = sorted(set(overrides) - set(valid))
@@ -107,3 +120,16 @@ def make(name: str, **overrides) -> tuple[RacingEnv, RacingParams]:
     elif source == "bank":
         params = with_bank(params, track_bank(seed, bank_size))
     return env, env.prepare(params)
+
+
+def _make_intersection(name: str, overrides: dict):
+    from envs.intersection import IntersectionEnv, IntersectionParams
+
+    valid = valid_overrides(name)
+    unknown = sorted(set(overrides) - set(valid))
+    if unknown:
+        raise ValueError(f"unknown override(s) {unknown} for {name!r}; valid overrides: {', '.join(valid)}")
+    vehicle = overrides.get("vehicle", VehicleParams())
+    if not isinstance(vehicle, VehicleParams):
+        raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+    return IntersectionEnv(discrete=_MULTI_AGENT[name]), IntersectionParams(**overrides)

@@ -1,6 +1,7 @@
 """Throughput benchmarks; every sub-command prints one JSON document to stdout.
 
     python experiments/bench.py env      [--scenarios tracking country_road] [--batches 1 64 1024 4096 8192]
+    python experiments/bench.py intersection [--vehicles 1 2 4 8] [--batches 1 64 1024 4096] [--discrete]
     python experiments/bench.py matmul   [--size 2048]
     python experiments/bench.py update   [--algos sac dsac xsac xdsac] [--widths 64 128 256] [--seeds 1 5 20]
     python experiments/bench.py train    [--env tracking] [--algos xsac xdsac] [--seeds 1 5 20]
@@ -92,6 +93,55 @@ def bench_env(scenario: str, batch: int, steps: int, repeats: int) -> dict:
         "steps_per_call": steps,
         "env_steps_per_s": batch * steps / rollout_seconds,
         "reset_us_per_env": 1e6 * reset_seconds / batch,
+        "compile_s": {"reset": reset_compile, "rollout": rollout_compile},
+    }
+
+
+def bench_intersection(max_vehicles: int, batch: int, steps: int, repeats: int, discrete: bool) -> dict:
+    """Env-steps/s and agent-steps/s of ``batch`` intersection envs (fixed ``max_vehicles``), random
+    actions for all 8 slots, inside one jitted ``lax.scan``. The env restarts itself every 600 steps,
+    so no auto-reset wrapper is needed; agent-steps count the slots that acted (``info["acted"]``)."""
+    import envs
+    from envs.core import VmapWrapper
+
+    name = "intersection_discrete" if discrete else "intersection"
+    env, params = envs.make(name, max_vehicles=max_vehicles)
+    venv = VmapWrapper(env, batch)
+
+    @jax.jit
+    def reset(key):
+        return venv.reset(key, params)
+
+    @jax.jit
+    def rollout(key, state):
+        def body(carry, key):
+            state, agent_steps = carry
+            key_act, key_step = jax.random.split(key)
+            action = jax.vmap(env.sample_actions, in_axes=(0, None))(jax.random.split(key_act, batch), params)
+            _, state, reward, _, _, info = venv.step(key_step, state, action, params)
+            return (state, agent_steps + jnp.sum(info["acted"], dtype=jnp.int32)), reward.sum()
+
+        (state, agent_steps), rewards = jax.lax.scan(
+            body, (state, jnp.zeros((), jnp.int32)), jax.random.split(key, steps)
+        )
+        return state, agent_steps, rewards
+
+    key = jax.random.PRNGKey(0)
+    start = time.perf_counter()
+    _, state = jax.block_until_ready(reset(key))
+    reset_compile = time.perf_counter() - start
+    start = time.perf_counter()
+    _, agent_steps, _ = jax.block_until_ready(rollout(key, state))
+    rollout_compile = time.perf_counter() - start
+    rollout_seconds = timed(lambda: rollout(key, state), repeats)
+    return {
+        "scenario": name,
+        "max_vehicles": max_vehicles,
+        "batch": batch,
+        "steps_per_call": steps,
+        "env_steps_per_s": batch * steps / rollout_seconds,
+        "agent_steps_per_s": int(agent_steps) / rollout_seconds,
+        "mean_alive_agents": int(agent_steps) / (batch * steps),
         "compile_s": {"reset": reset_compile, "rollout": rollout_compile},
     }
 
@@ -246,6 +296,14 @@ def main(argv: list[str] | None = None) -> int:
     env_parser.add_argument("--batches", nargs="+", type=int, default=[1, 64, 1024, 4096, 8192])
     env_parser.add_argument("--steps", type=int, default=100, help="steps per timed call")
     env_parser.add_argument("--repeats", type=int, default=3)
+    ix_parser = sub.add_parser(
+        "intersection", help="intersection env-steps/s and agent-steps/s (random actions, 8 slots)"
+    )
+    ix_parser.add_argument("--vehicles", nargs="+", type=int, default=[1, 2, 4, 8])
+    ix_parser.add_argument("--batches", nargs="+", type=int, default=[1, 64, 1024, 4096])
+    ix_parser.add_argument("--steps", type=int, default=100, help="steps per timed call")
+    ix_parser.add_argument("--repeats", type=int, default=3)
+    ix_parser.add_argument("--discrete", action="store_true", help="the Discrete(12) variant")
     mm_parser = sub.add_parser("matmul", help="float32 matmul GFLOP/s of the default device")
     mm_parser.add_argument("--size", type=int, default=2048)
     up_parser = sub.add_parser("update", help="agent updates/s per seed at Tracking shapes, FLOPs per update")
@@ -279,6 +337,16 @@ def main(argv: list[str] | None = None) -> int:
         report["results"] = [
             bench_env(scenario, batch, args.steps, args.repeats)
             for scenario in args.scenarios
+            for batch in args.batches
+        ]
+    elif args.command == "intersection":
+        if min(args.batches) < 1 or args.steps < 1 or args.repeats < 1:
+            parser.error("--batches, --steps and --repeats must be positive")
+        if not all(1 <= n <= 8 for n in args.vehicles):
+            parser.error("--vehicles must lie in 1..8")
+        report["results"] = [
+            bench_intersection(n, batch, args.steps, args.repeats, args.discrete)
+            for n in args.vehicles
             for batch in args.batches
         ]
     elif args.command == "train":
