@@ -14,7 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-ENVS = ("country_road", "tracking")
+ENVS = ("country_road", "tracking", "intersection")  # = xrl_jax.train.ENVS (kept here: --help needs no jax)
 ALGOS = ("sac", "dsac", "xsac", "xdsac")
 PRESETS = ("paper", "quick", "smoke")
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,10 +45,13 @@ presets:
   quick  30k steps per seed, width-64 networks, batch 128: ~10-15 min for one Tracking XDSAC
          seed on a 2-core CPU (XSAC is ~2.5x slower per step)
   smoke  a few hundred steps with tiny networks, for tests
+  intersection (multi-agent, one shared policy): paper = the released configs (5e6 env steps,
+         buffer 1.5e7 agent transitions, batch 512, 2 envs, re-initialisation every 500,001 steps,
+         evaluation on 20 episodes of 60 s with 8 vehicles); quick = 20k env steps, width 64
 
 --set KEY=VALUE accepts any TrainConfig field (num_envs, warmup_steps, batch_size, buffer_size,
   log_interval, eval_interval, eval_episodes, checkpoint_interval, train_tracks, track_seed,
-  eval_track_seed, seed, max_group_size, memory_budget_gb) or any agent field (actor_lr,
+  eval_track_seed, seed, reinit_steps, max_group_size, memory_budget_gb) or any agent field (actor_lr,
   critic_lr, gamma, tau, kappa, target_entropy, actor_width, critic_depth, truncation, ...;
   'agent.' prefix optional). Unknown keys fail with the list of allowed ones.
 
@@ -230,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         summary = train_mod.train(cfg, out, resume=args.resume is not None, progress=not args.quiet, log=log)
-    except MemoryPlanError as err:
+    except (MemoryPlanError, ConfigError) as err:
         return fail(str(err))
     except KeyboardInterrupt:
         print(

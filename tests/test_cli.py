@@ -3,6 +3,7 @@
 import functools
 import importlib.util
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -181,6 +182,20 @@ def test_resume_checks_the_folder_and_its_config(run, smoke_run, capsys, tmp_pat
     (tmp_path / "config.json").write_text('{"config": {"env": "mars"}}')
     status, _, err = call(run, capsys, "--resume", str(tmp_path))
     one_line_error(status, err, "config.json is unreadable")
+
+
+def test_resume_refuses_checkpoints_of_another_configuration(run, smoke_run, capsys, tmp_path):
+    """config.json edited after the run (here γ): the checkpoints no longer match it, so resuming
+    fails at once, before anything is restored or any result file is touched."""
+    copy = tmp_path / "edited"
+    shutil.copytree(smoke_run, copy)
+    document = json.loads((copy / "config.json").read_text())
+    document["config"]["agent"]["gamma"] = 0.9
+    (copy / "config.json").write_text(json.dumps(document))
+    before = files_of(copy, "metrics")
+    status, _, err = call(run, capsys, "--resume", str(copy), "--quiet")
+    one_line_error(status, err, "another configuration", "--out")
+    assert files_of(copy, "metrics") == before
 
 
 def test_resume_with_the_same_options_is_accepted(run, smoke_run, capsys):

@@ -54,6 +54,15 @@ class Checkpointer:
         restored = self._manager.restore(step, args=args)
         return restored.state, dict(restored.meta)
 
+    def metadata(self, step: int | None = None) -> dict:
+        """The metadata of checkpoint ``step`` (default: newest) without reading the state, e.g. to
+        check that the checkpoint belongs to the expected configuration before restoring it."""
+        step = self.latest_step() if step is None else int(step)
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint in {self.directory}")
+        restored = self._manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+        return dict(restored.meta)
+
     def close(self) -> None:
         self._manager.close()
 

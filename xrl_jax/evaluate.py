@@ -107,8 +107,63 @@ def make_evaluate(env, eval_params, agent, num_episodes: int):
     return evaluate
 
 
+EVAL_ENV_SEED = 0  # multi-agent evaluation: episode i always replays the env randomness of key (0, i)
+
+
+def make_evaluate_multiagent(env, eval_params, agent, num_episodes: int):
+    """``evaluate(key, agent_state) -> per-episode arrays`` for the multi-agent Intersection
+    (intersection spec §8.8): ``num_episodes`` episodes of ``eval_params.episode_steps`` steps with
+    the evaluation cap of vehicles, every episode's env randomness fixed (episode ``i`` uses the key
+    ``fold_in(PRNGKey(0), i)``, the analogue of the reference's ``reset(seed=i)``), the policy's own
+    randomness (XSAC samples) from ``key``. Per episode: the return summed over all agents, and the
+    env's metrics at the last step (trips completed, vehicles off the road, collided vehicles, mean
+    velocity); early terminations = off-road + collided vehicles.
+    """
+    steps = int(eval_params.episode_steps)
+    episode_keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(EVAL_ENV_SEED), i))(
+        jnp.arange(num_episodes)
+    )
+    reset_keys, stream_keys = jnp.unstack(jax.vmap(jax.random.split)(episode_keys), axis=1)
+    reset_all = jax.vmap(env.reset, in_axes=(0, None))
+    step_all = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    metric_keys = ("trips_completed", "come_off_vehicles", "collided_vehicles", "mean_velocity")
+
+    def evaluate(key, agent_state):
+        obs, env_state = reset_all(reset_keys, eval_params)
+        returns = jnp.zeros((num_episodes,), jnp.result_type(float))
+
+        def body(carry, t):
+            obs, env_state, returns, key = carry
+            key, act_key = jax.random.split(key)
+            action = agent.act(act_key, agent_state, obs, "eval")
+            step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(stream_keys, t)
+            obs, env_state, reward, _, _, info = step_all(step_keys, env_state, action, eval_params)
+            returns = returns + jnp.sum(jnp.where(info["acted"], reward, 0.0), axis=-1)
+            return (obs, env_state, returns, key), {k: info[k] for k in metric_keys}
+
+        (_, _, returns, _), metrics = jax.lax.scan(
+            body, (obs, env_state, returns, key), jnp.arange(steps, dtype=jnp.int32)
+        )
+        last = {k: v[-1] for k, v in metrics.items()}  # the env's episode metrics after its last step
+        return {
+            "return": returns,
+            **last,
+            "early_terminations": last["come_off_vehicles"] + last["collided_vehicles"],
+        }
+
+    return evaluate
+
+
 def summarize_episodes(episodes: dict[str, Any]) -> dict[str, Any]:
     """The §6.1 averages of one seed's evaluation, plus the per-episode returns (host side)."""
+    if "trips_completed" in episodes:  # multi-agent: the env's per-episode metrics (spec §8.8)
+        out = {f"avg_{k}": float(np.mean(v)) for k, v in episodes.items() if k != "return"}
+        returns = np.asarray(episodes["return"], np.float64)
+        return {
+            "avg_return": float(returns.mean()),
+            **out,
+            "episode_returns": [round(float(r), 6) for r in returns],
+        }
     returns = np.asarray(episodes["return"], np.float64)
     terminated = np.asarray(episodes["terminated"], bool)
     early = terminated & (np.asarray(episodes["last_reward"]) < EARLY_TERMINATION_REWARD)
@@ -140,6 +195,17 @@ SUMMARY_METRICS = (
     ("avg_etr", "early-termination rate"),
     ("avg_episode_length", "episode length"),
 )
+MULTI_AGENT_SUMMARY_METRICS = (
+    ("avg_return", "final return (all agents)"),
+    ("avg_trips_completed", "completed trips"),
+    ("avg_early_terminations", "early terminations"),
+    ("avg_mean_velocity", "mean velocity"),
+)
+
+
+def summary_metrics(env: str) -> tuple[tuple[str, str], ...]:
+    """The (key, label) pairs reported over seeds for ``env``."""
+    return MULTI_AGENT_SUMMARY_METRICS if env == "intersection" else SUMMARY_METRICS
 
 
 def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
@@ -165,7 +231,7 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
         "aggregate": {},
     }
     if finals:
-        for key, _ in SUMMARY_METRICS:
+        for key, _ in summary_metrics(cfg.env):
             scores = np.array([finals[s][key] for s in sorted(finals)], np.float64)
             interval = stats.stratified_bootstrap_ci(scores, stats.iqm, confidence=0.95)
             summary["aggregate"][key] = {
@@ -179,13 +245,13 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
 def format_table(summary: dict[str, Any]) -> str:
     """A plain-text table of the aggregate scores (IQM and 95 % stratified bootstrap CI over seeds)."""
     title = f"{summary['env']} / {summary['algo']} ({summary['preset']}), {summary['steps']} steps per seed"
-    lines = [title, f"{'metric':<24} {'IQM':>10} {'95% CI':>22} {'mean':>10} {'seeds':>6}"]
-    for key, label in SUMMARY_METRICS:
+    lines = [title, f"{'metric':<26} {'IQM':>10} {'95% CI':>22} {'mean':>10} {'seeds':>6}"]
+    for key, label in summary_metrics(summary["env"]):
         agg = summary["aggregate"].get(key)
         if agg is None:
             continue
         ci = f"[{agg['low']:.3f}, {agg['high']:.3f}]"
-        lines.append(f"{label:<24} {agg['estimate']:>10.3f} {ci:>22} {agg['mean']:>10.3f} {agg['n']:>6d}")
+        lines.append(f"{label:<26} {agg['estimate']:>10.3f} {ci:>22} {agg['mean']:>10.3f} {agg['n']:>6d}")
     if not summary["aggregate"]:
         lines.append("(no final evaluation yet)")
     return "\n".join(lines)

@@ -39,10 +39,11 @@ from flax import struct
 
 from xrl_jax import config as agent_config_mod
 from xrl_jax.agents import Agent, AgentState, make_agent
-from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_init, buffer_sample
+from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_add_packed, buffer_init, buffer_sample
 from xrl_jax.config import ALGOS, AgentConfig
 
-ENVS = ("country_road", "tracking")
+ENVS = ("country_road", "tracking", "intersection")
+MULTI_AGENT_ENVS = ("intersection",)
 PRESETS = ("paper", "quick", "smoke")
 EPISODE_WINDOW = 100  # rollout metrics average over the last 100 finished episodes (spec §6.2)
 EARLY_TERMINATION_REWARD = -0.5  # ETR: terminated with a last reward below this (spec §6.1)
@@ -87,6 +88,7 @@ class TrainConfig:
     train_tracks: int = 256  # size of the training track bank (envs draw from it at every reset)
     track_seed: int = 0  # training bank
     eval_track_seed: int = 1  # the fixed evaluation tracks, disjoint from the training bank
+    reinit_steps: int = 0  # re-initialise the whole agent (not the buffer) every this many steps; 0: never
     max_group_size: int = 0  # 0: as many seeds per group as the memory budget allows
     memory_budget_gb: float = 0.0  # 0: 90 % of the device's memory (host RAM on CPU)
     agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
@@ -101,8 +103,13 @@ class TrainConfig:
         return self.env + ("_discrete" if self.agent.is_discrete else "")
 
     @property
+    def multi_agent(self) -> bool:
+        return self.env in MULTI_AGENT_ENVS
+
+    @property
     def buffer_layout(self) -> str:
-        return "compact" if self.agent.truncation == "drop" else "explicit"
+        """Multi-agent transitions are packed (varying count per step), so they store next_obs."""
+        return "compact" if self.agent.truncation == "drop" and not self.multi_agent else "explicit"
 
     @property
     def chunk_vector_steps(self) -> int:
@@ -164,7 +171,7 @@ def _validate_train(cfg: TrainConfig) -> None:
         "eval_interval", "eval_episodes", "checkpoint_interval", "train_tracks", "warmup_steps",
     ):  # fmt: skip
         _positive_int(name, getattr(cfg, name))
-    for name in ("seed", "track_seed", "eval_track_seed", "max_group_size"):
+    for name in ("seed", "track_seed", "eval_track_seed", "max_group_size", "reinit_steps"):
         value = getattr(cfg, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise ConfigError(f"{name} must be a non-negative integer, got {value!r}")
@@ -186,10 +193,14 @@ def _validate_train(cfg: TrainConfig) -> None:
         raise ConfigError(f"warmup_steps ({cfg.warmup_steps}) must be at least num_envs ({e})")
     if cfg.buffer_size < cfg.batch_size:
         raise ConfigError(f"buffer_size ({cfg.buffer_size}) must be at least batch_size ({cfg.batch_size})")
+    if cfg.multi_agent and cfg.buffer_size < 8 * e:
+        raise ConfigError(f"buffer_size ({cfg.buffer_size}) must hold one step of all agents ({8 * e})")
 
 
 def _preset_train_fields(preset: str, env: str, algo: str) -> dict[str, Any]:
     """Train-loop settings of each preset (the agent part comes from :mod:`xrl_jax.config`)."""
+    if env == "intersection":
+        return _intersection_train_fields(preset)
     if preset == "paper":  # spec §5.7: 1e6 steps, buffer 1e6, eval every 1e5 on 100 episodes
         return {}
     if preset == "quick":  # ~15 min on a 2-core CPU for one seed of Tracking, still learns
@@ -214,6 +225,47 @@ def _preset_train_fields(preset: str, env: str, algo: str) -> dict[str, Any]:
         "checkpoint_interval": 64,
         "eval_episodes": 3,
         "train_tracks": 3,
+    }
+
+
+def _intersection_train_fields(preset: str) -> dict[str, Any]:
+    """Intersection (spec carenv-intersection.md §8): steps are multi-agent env steps; every alive
+    agent's transition is stored and followed by one update. Paper: the released configs' values."""
+    if preset == "paper":  # §8.7 "released configs" column; 2 envs as the reference's 2 workers
+        return {
+            "total_steps": 5_000_000,
+            "num_envs": 2,
+            "warmup_steps": 2_000,
+            "batch_size": 512,
+            "buffer_size": 15_000_000,
+            "log_interval": 2_000,
+            "eval_interval": 100_000,
+            "eval_episodes": 20,
+            "checkpoint_interval": 100_000,
+            "reinit_steps": 500_001,
+        }
+    if preset == "quick":
+        return {
+            "total_steps": 20_000,
+            "num_envs": 2,
+            "warmup_steps": 2_000,
+            "batch_size": 128,
+            "buffer_size": 100_000,
+            "log_interval": 1_000,
+            "eval_interval": 10_000,
+            "eval_episodes": 5,
+            "checkpoint_interval": 10_000,
+        }
+    return {  # smoke
+        "total_steps": 128,
+        "num_envs": 2,
+        "warmup_steps": 64,
+        "batch_size": 16,
+        "buffer_size": 512,
+        "log_interval": 64,
+        "eval_interval": 128,
+        "eval_episodes": 2,
+        "checkpoint_interval": 64,
     }
 
 
@@ -363,8 +415,13 @@ def cached_track_bank(seed: int, size: int):
 
 
 def make_envs(cfg: TrainConfig):
-    """``(env, train_params, eval_params)``: the training bank and the fixed evaluation tracks."""
+    """``(env, train_params, eval_params)``: the training bank and the fixed evaluation tracks
+    (Intersection: the curriculum for training, always 8 vehicles for evaluation, spec §8.8)."""
     import envs
+
+    if cfg.multi_agent:
+        env, params = envs.make(cfg.env_name)
+        return env, params, params.replace(max_vehicles=8)
     from envs.racing import with_bank
 
     train_bank = cached_track_bank(cfg.track_seed, cfg.train_tracks)
@@ -428,7 +485,9 @@ def _window_add(window: EpisodeWindow, done, returns, lengths, early, velocity) 
     )
 
 
-def _window_means(window: EpisodeWindow) -> dict[str, jax.Array]:
+def _window_means(window: EpisodeWindow, multi_agent: bool = False) -> dict[str, jax.Array]:
+    """Averages over the window; multi-agent windows hold per-agent episodes (termination or the
+    60 s restart) and the env's mean velocity instead of the track velocity."""
     filled = jnp.minimum(window.count, EPISODE_WINDOW)
     mask = jnp.arange(EPISODE_WINDOW) < filled
     denom = jnp.where(filled > 0, filled, 1)
@@ -441,7 +500,9 @@ def _window_means(window: EpisodeWindow) -> dict[str, jax.Array]:
         "rollout/avg_episode_return": mean(window.returns),
         "rollout/avg_episode_length": mean(window.lengths),
         "rollout/early_termination_rate": mean(window.early),
-        "rollout/avg_track_velocity": mean(window.track_velocity),
+        ("rollout/avg_mean_velocity" if multi_agent else "rollout/avg_track_velocity"): mean(
+            window.track_velocity
+        ),
         "rollout/episodes": window.count,
     }
 
@@ -500,8 +561,12 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
 
     env, params, eval_params = env_and_params if env_and_params is not None else make_envs(cfg)
     num_envs, batch, warmup = cfg.num_envs, cfg.batch_size, cfg.warmup_steps
-    venv = vmap_env(env, num_envs)
+    multi = cfg.multi_agent
+    venv = vmap_env(env, num_envs, auto_reset=not multi)  # the multi-agent env restarts itself
     obs_shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0), params)[0]
+    if multi:  # observations carry a leading agent-slot axis; the agent sees one agent's view
+        slots = int(env.num_agents)
+        obs_shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[1:], s.dtype), obs_shapes)
     obs_example = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), obs_shapes)
     space = env.action_space(params)
     action_size = int(space.n) if hasattr(space, "n") else int(space.shape[0])
@@ -509,6 +574,11 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
     explicit = cfg.buffer_layout == "explicit"
     action_example = agent.random_action(jax.random.PRNGKey(0))
     float_dtype = jnp.result_type(float)
+    actors = (num_envs, slots) if multi else (num_envs,)  # the batch shape of one acting step
+    buffer_columns = 1 if multi else num_envs  # multi-agent transitions are packed, one per row
+
+    def new_buffer(capacity):
+        return buffer_init(obs_example, action_example, capacity, buffer_columns, layout=cfg.buffer_layout)
 
     def init_one(base_seed, index):
         key = jax.random.fold_in(jax.random.PRNGKey(base_seed), index)
@@ -516,15 +586,13 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         obs, env_state = venv.reset(env_key, params)
         return RunState(
             agent=agent.init(agent_key, obs_example),
-            buffer=buffer_init(
-                obs_example, action_example, cfg.buffer_size, num_envs, layout=cfg.buffer_layout
-            ),
+            buffer=new_buffer(cfg.buffer_size),
             env_state=env_state,
             obs=obs,
             key=run_key,
             eval_key=eval_key,
-            episode_return=jnp.zeros((num_envs,), float_dtype),
-            episode_length=jnp.zeros((num_envs,), jnp.int32),
+            episode_return=jnp.zeros(actors, float_dtype),
+            episode_length=jnp.zeros(actors, jnp.int32),
             window=_window_init(float_dtype),
         )
 
@@ -535,9 +603,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         return agent.update(update_key, agent_state, data)
 
     abstract_agent = jax.eval_shape(agent.init, jax.random.PRNGKey(0), obs_example)
-    abstract_buffer = jax.eval_shape(
-        lambda: buffer_init(obs_example, action_example, cfg.batch_size, num_envs, layout=cfg.buffer_layout)
-    )
+    abstract_buffer = jax.eval_shape(lambda: new_buffer(max(cfg.batch_size, 8 * num_envs)))
     metric_shapes = jax.eval_shape(sample_and_update, abstract_agent, abstract_buffer, jax.random.PRNGKey(0))[
         1
     ]
@@ -545,14 +611,28 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
     def zero_metrics():
         return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), metric_shapes)
 
+    def maybe_reinitialise(agent_state, first_transition, key):
+        """Primacy-bias reset (intersection spec §8.6): a fresh agent (same traced hyper-parameters)
+        whenever a step counted from 1 in this vector step is a multiple of ``reinit_steps``."""
+        if not cfg.reinit_steps:
+            return agent_state
+        period = cfg.reinit_steps
+        last = first_transition + num_envs - 1
+        hit = (last // period) * period >= jnp.maximum(first_transition, 1)  # unbatched: a real branch
+        return jax.lax.cond(hit, lambda a: agent.init(key, obs_example, a.hparams), lambda a: a, agent_state)
+
+    def choose_actions(state, agent_state, first_transition, act_key, random_key):
+        policy_action = agent.act(act_key, agent_state, state.obs, "train")
+        random_action = agent.random_action(random_key, actors)
+        warm_env = first_transition + jnp.arange(num_envs) < warmup
+        warm = warm_env.reshape(warm_env.shape + (1,) * (policy_action.ndim - 1))
+        return jnp.where(warm, random_action, policy_action), warm_env
+
     def vector_step(state: RunState, t):
-        key, act_key, random_key, env_key, update_key = jax.random.split(state.key, 5)
+        key, act_key, random_key, env_key, update_key, reinit_key = jax.random.split(state.key, 6)
         first_transition = t * num_envs
-        policy_action = agent.act(act_key, state.agent, state.obs, "train")
-        random_action = agent.random_action(random_key, (num_envs,))
-        warm = first_transition + jnp.arange(num_envs) < warmup
-        warm = warm.reshape(warm.shape + (1,) * (policy_action.ndim - 1))
-        action = jnp.where(warm, random_action, policy_action)
+        agent_state = maybe_reinitialise(state.agent, first_transition, reinit_key)
+        action, _ = choose_actions(state, agent_state, first_transition, act_key, random_key)
         next_obs, env_state, reward, terminated, truncated, info = venv.step(
             env_key, state.env_state, action, params
         )
@@ -573,7 +653,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
             return agent_state, (metrics, active)
 
         agent_state, (metrics, updated) = jax.lax.scan(
-            scan_updates, state.agent, (jnp.arange(num_envs), jax.random.split(update_key, num_envs))
+            scan_updates, agent_state, (jnp.arange(num_envs), jax.random.split(update_key, num_envs))
         )
         done = terminated | truncated
         episode_return = state.episode_return + reward
@@ -600,18 +680,93 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         }
         return new_state, out
 
+    def multi_agent_step(state: RunState, t):
+        """One step of E multi-agent envs: every agent alive at the start of the step acts; its
+        transition is stored (packed) and, after warm-up, followed by one gradient step (intersection
+        spec §8.5: updates = agent transitions, 0..8 per env step, done as an exact ``while_loop``)."""
+        key, act_key, random_key, env_key, update_key, reinit_key = jax.random.split(state.key, 6)
+        first_transition = t * num_envs
+        agent_state = maybe_reinitialise(state.agent, first_transition, reinit_key)
+        action, warm_env = choose_actions(state, agent_state, first_transition, act_key, random_key)
+        next_obs, env_state, reward, terminated, truncated, info = venv.step(
+            env_key, state.env_state, action, params
+        )
+        acted = info["acted"]
+
+        def flat(x):
+            return x.reshape((num_envs * slots, *x.shape[2:]))
+
+        buffer = buffer_add_packed(
+            state.buffer,
+            jax.tree.map(flat, state.obs),
+            flat(action),
+            flat(reward),
+            flat(terminated & acted),  # time-limit restarts stay bootstrapped (spec Q8)
+            jax.tree.map(flat, info["final_obs"]),
+            flat(acted),
+        )
+        owed = jnp.sum(acted & ~warm_env[:, None], dtype=jnp.int32)
+
+        def keep_updating(carry):
+            return carry[0] < owed
+
+        def one_update(carry):
+            count, agent_state, key, totals = carry
+            key, sub = jax.random.split(key)
+            agent_state, metrics = sample_and_update(agent_state, buffer, sub)
+            return count + 1, agent_state, key, jax.tree.map(jnp.add, totals, metrics)
+
+        _, agent_state, _, metric_sums = jax.lax.while_loop(
+            keep_updating, one_update, (jnp.zeros((), jnp.int32), agent_state, update_key, zero_metrics())
+        )
+        reward = jnp.where(acted, reward, 0.0)
+        agent_done = acted & (terminated | truncated)
+        episode_return = state.episode_return + reward
+        episode_length = state.episode_length + acted.astype(jnp.int32)
+        early = terminated & (reward < EARLY_TERMINATION_REWARD)
+        velocity = jnp.broadcast_to(info["mean_velocity"][:, None], acted.shape)
+        window = _window_add(
+            state.window, flat(agent_done), flat(episode_return), flat(episode_length), flat(early),
+            flat(velocity),
+        )  # fmt: skip
+        ended = info["episode_end"]
+        new_state = state.replace(
+            agent=agent_state,
+            buffer=buffer,
+            env_state=env_state,
+            obs=next_obs,
+            key=key,
+            episode_return=jnp.where(agent_done, 0.0, episode_return).astype(float_dtype),
+            episode_length=jnp.where(agent_done, 0, episode_length),
+            window=window,
+        )
+        out = {
+            "reward_sum": jnp.sum(reward),
+            "reward_count": jnp.sum(acted, dtype=jnp.int32),
+            "metrics": metric_sums,
+            "updates": owed,
+            "episodes_ended": jnp.sum(ended, dtype=jnp.int32),
+            "trips": jnp.sum(jnp.where(ended, info["trips_completed"], 0)),
+            "early_terminations": jnp.sum(
+                jnp.where(ended, info["come_off_vehicles"] + info["collided_vehicles"], 0)
+            ),
+        }
+        return new_state, out
+
+    step_fn = multi_agent_step if multi else vector_step
+
     def chunk_one(state: RunState, start_vector_step):
         def body(state, i):
-            return vector_step(state, start_vector_step + i)
+            return step_fn(state, start_vector_step + i)
 
         if cfg.total_steps % cfg.log_interval:  # the last chunk is partial: gate its tail (a real cond)
 
             def body(state, i):
                 t = start_vector_step + i
-                return jax.lax.cond(t < cfg.total_vector_steps, vector_step, skip_step, state, t)
+                return jax.lax.cond(t < cfg.total_vector_steps, step_fn, skip_step, state, t)
 
             def skip_step(state, t):
-                shapes = jax.eval_shape(vector_step, state, t)[1]
+                shapes = jax.eval_shape(step_fn, state, t)[1]
                 return state, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
 
         state, outs = jax.lax.scan(body, state, jnp.arange(cfg.chunk_vector_steps, dtype=jnp.int32))
@@ -627,11 +782,24 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         metrics["rollout/avg_step_reward"] = jnp.where(
             count > 0, jnp.sum(outs["reward_sum"]) / jnp.maximum(count, 1), jnp.nan
         )
-        metrics.update(_window_means(state.window))
+        metrics.update(_window_means(state.window, multi))
+        if multi:
+            episodes = jnp.sum(outs["episodes_ended"])
+            per_episode = jnp.maximum(episodes, 1)
+            metrics["rollout/env_episodes"] = episodes
+            metrics["rollout/trips_per_episode"] = jnp.where(
+                episodes > 0, jnp.sum(outs["trips"]) / per_episode, jnp.nan
+            )
+            metrics["rollout/early_terminations_per_episode"] = jnp.where(
+                episodes > 0, jnp.sum(outs["early_terminations"]) / per_episode, jnp.nan
+            )
         metrics["buffer/stored_rows"] = state.buffer.filled_rows
         return state, metrics
 
-    evaluate_one = evaluate_mod.make_evaluate(env, eval_params, agent, cfg.eval_episodes)
+    if multi:
+        evaluate_one = evaluate_mod.make_evaluate_multiagent(env, eval_params, agent, cfg.eval_episodes)
+    else:
+        evaluate_one = evaluate_mod.make_evaluate(env, eval_params, agent, cfg.eval_episodes)
 
     def evaluate_seed(state: RunState):
         key, sub = jax.random.split(state.eval_key)
@@ -734,6 +902,15 @@ def plan_memory(
 # ------------------------------------------------------------------------------------------------
 # Host loop
 # ------------------------------------------------------------------------------------------------
+
+
+def config_fingerprint(cfg: TrainConfig) -> str:
+    """A hash of every setting that shapes the run's results (not the host-only memory settings);
+    stored with each checkpoint so that a resume never continues another configuration's state."""
+    fields = cfg.to_dict()
+    for host_only in ("max_group_size", "memory_budget_gb"):
+        fields.pop(host_only)
+    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _jsonable(value):
@@ -846,6 +1023,7 @@ def train(
         log(f"memory: {cfg.num_seeds} seeds do not fit at once; running {len(groups)} groups of up to "
             f"{len(groups[0])} seeds one after another")  # fmt: skip
 
+    fingerprint = config_fingerprint(cfg)
     total = cfg.total_steps * cfg.num_seeds
     done_steps = 0
     timing = {"compile_s": 0.0, "train_s": 0.0, "eval_s": 0.0, "checkpoint_s": 0.0, "env_steps": 0}
@@ -857,11 +1035,17 @@ def train(
         next_chunk = 0
         state = None
         if resume and ckpt.latest_step() is not None:
-            state, meta = ckpt.restore(trainer.abstract_state(len(seeds)))
+            meta = ckpt.metadata()
+            if meta.get("config", fingerprint) != fingerprint:
+                raise ConfigError(
+                    f"checkpoint group {group_index} in {paths['checkpoints']} was written by another "
+                    "configuration than config.json describes; start a new run with --out"
+                )
             if meta.get("seeds") != seeds:
                 raise ConfigError(
                     f"checkpoint group {group_index} holds seeds {meta.get('seeds')}, expected {seeds}"
                 )
+            state, meta = ckpt.restore(trainer.abstract_state(len(seeds)))
             next_chunk = int(meta["next_chunk"])
         resumed_step = cfg.chunk_end_step(next_chunk - 1) if next_chunk else 0
         for seed in seeds:  # drop anything written after the checkpoint (or everything, when fresh)
@@ -916,7 +1100,8 @@ def train(
                     _append_lines(paths["eval"] / f"seed_{seed}.jsonl", [line])
             if step % cfg.checkpoint_interval == 0 or step == cfg.total_steps:
                 tic = time.perf_counter()
-                ckpt.save(step, state, {"next_chunk": chunk_index + 1, "seeds": seeds, "step": step})
+                meta = {"next_chunk": chunk_index + 1, "seeds": seeds, "step": step, "config": fingerprint}
+                ckpt.save(step, state, meta)
                 timing["checkpoint_s"] += time.perf_counter() - tic
             done_steps += collected
             if bar is not None:

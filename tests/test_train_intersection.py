@@ -1,0 +1,80 @@
+"""Multi-agent training on the Intersection through the CLI: packed agent transitions, one update per
+agent transition after warm-up, periodic re-initialisation, evaluation with 8 vehicles."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from xrl_jax import train as train_mod
+
+ROOT = Path(__file__).resolve().parents[1]
+# 3 chunks of 64 env steps per seed (2 envs); warm-up = chunk 0; re-initialisation at env step 128.
+SMOKE = [
+    "--env", "intersection", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--steps", "192",
+    "--set", "reinit_steps=128", "--set", "buffer_size=4096", "--quiet",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    spec = importlib.util.spec_from_file_location("run_cli_intersection", ROOT / "experiments" / "run.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = tmp_path_factory.mktemp("runs") / "intersection"
+    assert module.main([*SMOKE, "--out", str(out)]) == 0
+    return out
+
+
+def lines(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_presets_follow_the_released_configs():
+    cfg = train_mod.resolve_config("intersection", "xsac", "paper")
+    assert cfg.multi_agent and cfg.buffer_layout == "explicit"
+    assert (cfg.total_steps, cfg.buffer_size, cfg.batch_size) == (5_000_000, 15_000_000, 512)
+    assert (cfg.warmup_steps, cfg.reinit_steps, cfg.eval_episodes) == (2_000, 500_001, 20)
+    assert cfg.env_name == "intersection"
+    assert train_mod.resolve_config("intersection", "xdsac", "paper").env_name == "intersection_discrete"
+    assert train_mod.resolve_config("tracking", "xsac", "paper").reinit_steps == 0
+
+
+def test_every_agent_transition_is_stored_and_trained_on(smoke_run):
+    for seed in (0, 1):
+        rows = lines(smoke_run / "metrics" / f"seed_{seed}.jsonl")
+        assert [r["step"] for r in rows] == [64, 128, 192]
+        stored = [r["buffer/stored_rows"] for r in rows]
+        updates = [r["train/updates"] for r in rows]  # the agent's own update counter
+        # At least one agent acts in every env step (reset spawns >= 1 vehicle), so >= 64 per chunk.
+        assert stored[0] >= 64 and stored[1] - stored[0] >= 64 and stored[2] - stored[1] >= 64
+        assert updates[0] == 0  # chunk 0 is warm-up: random actions, no updates
+        assert updates[1] == stored[1] - stored[0]  # one update per stored agent transition
+        # The agent was re-initialised at env step 128: its counter restarted with chunk 2.
+        assert updates[2] == stored[2] - stored[1]
+        assert all(r["train/loss_critic"] is not None for r in rows[1:])
+
+
+def test_evaluation_reports_trips_and_early_terminations_with_ci(smoke_run):
+    summary = json.loads((smoke_run / "summary.json").read_text())
+    assert summary["complete"] and summary["env"] == "intersection"
+    for key in ("avg_return", "avg_trips_completed", "avg_early_terminations", "avg_mean_velocity"):
+        agg = summary["aggregate"][key]
+        assert agg["low"] <= agg["estimate"] <= agg["high"] and agg["n"] == 2
+    final = lines(smoke_run / "eval" / "seed_0.jsonl")[-1]
+    assert final["step"] == 192 and len(final["episode_returns"]) == 2
+    # 8 vehicles drive for 60 s: something happens (spawned cars move at 5.5-8.3 m/s at least).
+    assert final["avg_mean_velocity"] > 0.5
+    assert final["avg_early_terminations"] == final["avg_come_off_vehicles"] + final["avg_collided_vehicles"]
+    seeds = [lines(smoke_run / "metrics" / f"seed_{s}.jsonl")[-1] for s in (0, 1)]
+    assert seeds[0]["buffer/stored_rows"] != seeds[1]["buffer/stored_rows"] or (
+        seeds[0]["train/loss_critic"] != seeds[1]["train/loss_critic"]
+    )
+
+
+def test_cli_offers_every_trainable_env():
+    spec = importlib.util.spec_from_file_location("run_cli_envs", ROOT / "experiments" / "run.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.ENVS == train_mod.ENVS
