@@ -12,13 +12,14 @@ observation), so figures can still show their action distribution.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
+from envs.actions import continuous_to_control, discrete_to_control
 from xrl_jax.distributions import (
     ABSENT_LOG_WEIGHT,
     CategoricalMixture,
@@ -60,7 +61,7 @@ def explain(agent, agent_state, obs: Mapping[str, jax.Array]) -> Explanation:
     is_mixture = agent.config.algo in ("xsac", "xdsac")
     weights = policy.weights
     present = policy.present
-    components_per_object = weights.shape[-1] // agent.obs_shape.num_objects if is_mixture else 1
+    components_per_object = agent.config.components_per_object if is_mixture else 1
     if components_per_object > 1:  # objects own C components each, w_{o,c} = w_o / C
         grouped = (*weights.shape[:-1], -1, components_per_object)
         weights = weights.reshape(grouped).sum(-1)
@@ -96,3 +97,149 @@ def prune(policy: Policy, epsilon: float) -> tuple[Policy, jax.Array]:
     drop = jnp.take_along_axis(drop_sorted, inverse, axis=-1)
     removed = jnp.sum(jnp.where(drop, weights, 0.0), axis=-1)
     return keep_components(policy, ~drop), removed
+
+
+# ------------------------------------------------------------------------------------------------
+# One evaluation episode with its explanations (device side; the figures are drawn on the host)
+# ------------------------------------------------------------------------------------------------
+
+
+@struct.dataclass
+class EpisodeRecord:
+    """One episode, padded to ``max_steps`` (leading time axis T everywhere).
+
+    Step t holds the state s_t and observation o_t the agent saw, the explanation of π(·|o_t), the
+    action a_t taken and its vehicle control, and the reward and end flags that a_t produced.
+    ``valid[t]`` is False for the padding after the episode ended (those entries repeat the last state).
+    """
+
+    states: Any
+    obs: Any
+    explanations: Explanation
+    actions: jax.Array
+    controls: jax.Array  # (T, 3) mapped (steer, throttle, brake)
+    rewards: jax.Array
+    terminated: jax.Array
+    truncated: jax.Array
+    valid: jax.Array
+
+    @property
+    def length(self) -> jax.Array:
+        """Steps taken in the episode."""
+        return jnp.sum(self.valid.astype(jnp.int32), axis=-1)
+
+
+def single_track_params(params, index: int):
+    """Racing params whose bank holds only track ``index`` of ``params``' bank (evaluation episode ``index``).
+
+    This is how :func:`xrl_jax.evaluate.make_evaluate` gives episode i its fixed track.
+    """
+    bank_size = int(params.tracks.num_points.shape[0])
+    if not 0 <= int(index) < bank_size:
+        raise ValueError(f"track index {index} out of range: the bank holds {bank_size} tracks")
+    pick = lambda leaf: leaf[int(index) : int(index) + 1]
+    changes = {"tracks": jax.tree.map(pick, params.tracks)}
+    if getattr(params, "tables", None) is not None:
+        changes["tables"] = jax.tree.map(pick, params.tables)
+    return params.replace(**changes)
+
+
+def make_episode_rollout(env, agent, max_steps: int, mode: str = "eval") -> Callable:
+    """``rollout(key, params, agent_state) -> EpisodeRecord``, jitted: one episode as one ``lax.scan``.
+
+    The env is stepped without auto-reset (``reset_env`` / ``step_env``, like the evaluation); once
+    the episode has ended the carry is frozen and the remaining steps are marked invalid, so the
+    record has the fixed length ``max_steps``. ``mode`` is the agent's act mode (default: its
+    evaluation policy, spec §3.8).
+    """
+    if int(max_steps) < 1:
+        raise ValueError(f"max_steps must be a positive integer, got {max_steps}")
+    to_control = discrete_to_control if agent.is_discrete else continuous_to_control
+
+    def rollout(key, params, agent_state) -> EpisodeRecord:
+        reset_key, key = jax.random.split(key)
+        obs, state = env.reset_env(reset_key, params)
+
+        def step(carry, step_key):
+            obs, state, done = carry
+            act_key, env_key = jax.random.split(step_key)
+            explanation = explain(agent, agent_state, obs)
+            action = agent.act(act_key, agent_state, obs, mode)
+            next_obs, next_state, reward, terminated, truncated, _ = env.step_env(
+                env_key, state, action, params
+            )
+
+            def freeze(new, old):
+                return jax.tree.map(lambda n, o: jnp.where(done, o, n), new, old)
+
+            out = {
+                "states": state,
+                "obs": obs,
+                "explanations": explanation,
+                "actions": action,
+                "controls": to_control(action),
+                "rewards": reward,
+                "terminated": terminated,
+                "truncated": truncated,
+                "valid": ~done,
+            }
+            carry = (freeze(next_obs, obs), freeze(next_state, state), done | terminated | truncated)
+            return carry, out
+
+        carry = (obs, state, jnp.zeros((), bool))
+        _, outs = jax.lax.scan(step, carry, jax.random.split(key, int(max_steps)))
+        return EpisodeRecord(**outs)
+
+    return jax.jit(rollout)
+
+
+class RunError(ValueError):
+    """A results folder that cannot give the requested trained agent; the message is one line."""
+
+
+def load_trained_agent(run_dir, seed: int = 0):
+    """``(config, trainer, agent_state)`` of seed ``seed`` from the newest checkpoint of a results folder.
+
+    The folder's ``config.json`` holds the full :class:`~xrl_jax.train.TrainConfig`; ``plan.json``
+    says which checkpoint group holds the seed (one group when it is missing). The whole group's
+    run state is restored (structure from ``Trainer.abstract_state``) and the seed's agent taken out.
+    """
+    import json
+    from pathlib import Path
+
+    from xrl_jax.checkpoint import Checkpointer
+    from xrl_jax.train import TrainConfig, get_trainer
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise RunError(f"results folder {run_dir} does not exist")
+    config_path = run_dir / "config.json"
+    if not config_path.is_file():
+        raise RunError(f"{run_dir} is not a results folder (no config.json)")
+    try:
+        cfg = TrainConfig.from_dict(json.loads(config_path.read_text())["config"])
+    except (ValueError, KeyError, TypeError) as err:
+        raise RunError(f"{config_path} is unreadable or from another version ({err})") from None
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < cfg.num_seeds:
+        raise RunError(f"seed {seed} out of range: the run has seeds 0..{cfg.num_seeds - 1}")
+    plan_path = run_dir / "plan.json"
+    groups = (
+        json.loads(plan_path.read_text())["groups"] if plan_path.is_file() else [list(range(cfg.num_seeds))]
+    )
+    group_index = next((g for g, seeds in enumerate(groups) if seed in seeds), None)
+    if group_index is None:
+        raise RunError(f"seed {seed} is in no checkpoint group of {plan_path}")
+    directory = run_dir / "checkpoints" / f"group_{group_index}"
+    if not directory.is_dir():
+        raise RunError(f"no checkpoint in {run_dir} (missing {directory})")
+    checkpointer = Checkpointer(directory)
+    try:
+        if checkpointer.latest_step() is None:
+            raise RunError(f"no checkpoint in {directory}")
+        trainer = get_trainer(cfg)
+        state, meta = checkpointer.restore(trainer.abstract_state(len(groups[group_index])))
+    finally:
+        checkpointer.close()
+    row = list(meta.get("seeds", groups[group_index])).index(seed)
+    agent_state = jax.tree.map(lambda leaf: leaf[row], state.agent)
+    return cfg, trainer, agent_state

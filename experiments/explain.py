@@ -1,0 +1,224 @@
+"""Draw a trained policy's explanations over one evaluation episode: ``python experiments/explain.py``.
+
+    python experiments/explain.py --run RESULTS_DIR [--seed i] [--episode j] [--step k] --out FILE
+
+The agent of seed ``i`` is restored from the run's newest checkpoint and drives evaluation track
+``j`` (the fixed tracks of the run's evaluations) in its evaluation mode; the episode is one
+compiled ``lax.scan``. ``--out`` decides what is written: ``.png`` the frame of step ``k``,
+``.gif`` / ``.mp4`` the whole episode. The per-step attributions (every object's weight and world
+position) go to JSON lines next to it. See ``xrl_jax/explain_figures.py`` for how to read a figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+FORMATS = (".png", ".gif", ".mp4")
+EPISODE_ENVS = ("country_road", "tracking")  # single-agent scenarios with fixed evaluation tracks
+
+
+def _stored_env(run: Path) -> str | None:
+    """The scenario of a results folder, or None when its config cannot be read (reported later)."""
+    import json
+
+    try:
+        return json.loads((run / "config.json").read_text())["config"]["env"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that reports a bad value in one line (no usage block), exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {value}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    value = non_negative_int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def unit_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {value}")
+    return value
+
+
+EPILOG = """\
+reading the figure:
+  each object with mixture weight >= --threshold carries a glyph whose area is proportional to
+  its weight; the glyph is that object's own action distribution (discrete: 3x4 probability
+  matrix, columns steering, rows throttle / coast / both / brake; continuous: probability mass
+  over steering (x) x throttle-minus-brake (y)). The inset (top left) is the combined policy, the
+  weighted sum of the glyphs. SAC / DSAC baselines have no objects and show only the inset.
+
+attributions (JSON lines, one per step): step, ego pose, action, control, reward and per object
+  index, weight, world x, y and its type (cone colour / trajectory index / vehicle row / neutral).
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(
+        prog="explain.py",
+        description="Render a trained agent's evaluation episode with its per-object explanations.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--run", required=True, metavar="RESULTS_DIR", help="results folder of experiments/run.py"
+    )
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="which seed of the run (default 0)")
+    parser.add_argument(
+        "--episode", type=non_negative_int, default=0, help="evaluation track index (default 0)"
+    )
+    parser.add_argument("--step", type=non_negative_int, default=0, help="step drawn into a .png (default 0)")
+    parser.add_argument("--out", required=True, metavar="FILE", help="output: .png (one step), .gif or .mp4")
+    parser.add_argument(
+        "--attributions",
+        default=None,
+        metavar="FILE",
+        help="JSON-lines attributions (default: <out without suffix>.attributions.jsonl)",
+    )
+    parser.add_argument("--key", type=non_negative_int, default=0, help="PRNG key of the episode (default 0)")
+    parser.add_argument(
+        "--threshold",
+        type=unit_float,
+        default=0.05,
+        help="objects lighter than this are left unmarked (default 0.05)",
+    )
+    parser.add_argument(
+        "--max-steps",
+        type=positive_int,
+        default=None,
+        help="stop the episode after this many steps (default: the env's limit)",
+    )
+    parser.add_argument(
+        "--width", type=positive_int, default=1280, help="frame width in pixels (default 1280)"
+    )
+    parser.add_argument(
+        "--height", type=positive_int, default=720, help="frame height in pixels (default 720)"
+    )
+    parser.add_argument("--fps", type=positive_int, default=10, help="video frames per second (default 10)")
+    parser.add_argument(
+        "--mirrored", action="store_true", help="the original's mirrored view (as in the paper)"
+    )
+    return parser
+
+
+def fail(message: str) -> int:
+    print(f"explain.py: error: {message}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    out = Path(args.out)
+    suffix = out.suffix.lower()
+    if suffix not in FORMATS:
+        return fail(
+            f"unsupported output format {out.suffix or '(none)'!r} for --out {out}; use .png, .gif or .mp4"
+        )
+    if suffix == ".mp4":
+        import shutil
+
+        if shutil.which("ffmpeg") is None:
+            return fail("writing .mp4 needs the ffmpeg program on PATH; install it or use .gif")
+    if not out.parent.exists():
+        return fail(f"the folder of --out {out} does not exist")
+    if args.width < 16 or args.height < 16:
+        return fail(f"frame size must be at least 16x16 pixels, got {args.width}x{args.height}")
+    attributions = (
+        Path(args.attributions) if args.attributions else out.with_name(out.stem + ".attributions.jsonl")
+    )
+
+    import jax
+
+    from xrl_jax.explain import RunError, load_trained_agent, make_episode_rollout, single_track_params
+    from xrl_jax.explain_figures import EpisodeFigures, write_attributions
+
+    env = _stored_env(Path(args.run))
+    if env is not None and env not in EPISODE_ENVS:
+        return fail(
+            f"episodes of {env} runs are not supported yet (only {', '.join(EPISODE_ENVS)}); draw "
+            "multi-agent frames with xrl_jax.explain_figures.intersection_frame"
+        )
+    try:
+        cfg, trainer, agent_state = load_trained_agent(args.run, args.seed)
+    except RunError as err:
+        return fail(str(err))
+    if args.episode >= cfg.eval_episodes:
+        return fail(
+            f"episode {args.episode} out of range: the run evaluates on tracks 0..{cfg.eval_episodes - 1}"
+        )
+    params = single_track_params(trainer.eval_params, args.episode)
+    max_steps = int(trainer.eval_params.max_steps) + 1
+    if args.max_steps is not None:
+        max_steps = min(max_steps, args.max_steps)
+    agent = trainer.agent
+    if not agent.config.is_mixture:
+        print(
+            f"explain.py: {cfg.algo} is a baseline without per-object explanations; "
+            "the figure shows only its action distribution",
+            file=sys.stderr,
+        )
+    rollout = make_episode_rollout(trainer.env, agent, max_steps)
+    record = jax.device_get(rollout(jax.random.PRNGKey(args.key), params, agent_state))
+    figures = EpisodeFigures(
+        cfg.env_name,
+        trainer.env,
+        params,
+        record,
+        neutral=bool(getattr(agent.config, "neutral_object", False)),
+        mirrored=args.mirrored,
+    )
+    length = figures.length
+    if suffix == ".png" and args.step >= length:
+        return fail(f"--step {args.step} is beyond the episode ({length} steps: 0..{length - 1})")
+
+    from envs.render import save_png, save_video
+
+    title = f"{cfg.env} {cfg.algo} seed {args.seed} track {args.episode}"
+    options = {"threshold": args.threshold, "width": args.width, "height": args.height}
+    if suffix == ".png":
+        frame, _ = figures.frame(args.step, title=f"{title} step {args.step}", **options)
+        save_png(frame, out)
+    else:
+        save_video(figures.frames(title=title, **options), out, fps=args.fps)
+    write_attributions(figures.attributions(), attributions)
+    ended = (
+        "terminated"
+        if bool(record.terminated[length - 1])
+        else "truncated"
+        if bool(record.truncated[length - 1])
+        else "stopped (--max-steps)"
+    )
+    print(
+        f"{out} ({length} steps, episode {ended}, return {float(record.rewards[:length].sum()):.2f}); "
+        f"attributions: {attributions}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+    sys.exit(main())
