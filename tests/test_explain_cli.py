@@ -1,4 +1,5 @@
-"""``experiments/explain.py`` end to end: PNG, GIF and attributions from a run folder, baselines, bad input.
+"""``experiments/explain.py`` end to end: PNG, GIF and attributions from a run folder, baselines, bad input
+(racing and Intersection runs).
 
 The default tests use smoke-preset run folders whose checkpoint holds the freshly initialised run
 state (what ``run.py`` saves has the same structure), so no training has to compile; the slow test
@@ -17,6 +18,8 @@ from train_support import prepare_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--width", "320", "--height", "180", "--max-steps", "5"]
+# 20 steps: the untrained cars leave the road and their slots are refilled by new cars
+SMALL_INTERSECTION = ["--width", "320", "--height", "180", "--max-steps", "20"]
 
 
 def load_script(name):
@@ -134,11 +137,12 @@ def test_bad_input_fails_with_one_line(cli, xdsac_run, tmp_path, capsys):
         "--step 9 is beyond the episode (5 steps",
     )
     one_line_error(*call(cli, capsys, "--run", xdsac_run, "--seed", -1, "--out", png)[::2], "non-negative")
-    multi = tmp_path / "multi"
-    multi.mkdir()
-    (multi / "config.json").write_text(json.dumps({"config": {"env": "intersection"}}))
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "config.json").write_text(json.dumps({"config": {"env": "highway"}}))
+    one_line_error(*call(cli, capsys, "--run", other, "--out", png)[::2], "highway runs are not supported")
     one_line_error(
-        *call(cli, capsys, "--run", multi, "--out", png)[::2], "intersection runs are not supported"
+        *call(cli, capsys, "--run", xdsac_run, "--slot", 1, "--out", png)[::2], "for intersection runs only"
     )
     assert not png.exists()
 
@@ -159,3 +163,111 @@ def test_cli_on_a_trained_smoke_run(cli, tmp_path, capsys):
     assert all(
         item["type"] == "cone" and item["colour"] in ("blue", "yellow") for r in rows for item in r["objects"]
     )
+
+
+# ------------------------------------------------------------------------------------------------
+# Intersection (multi-agent) runs
+# ------------------------------------------------------------------------------------------------
+
+
+def make_intersection_run_folder(folder: Path, algo: str) -> Path:
+    """A smoke-preset Intersection results folder with one seed whose checkpoint holds a freshly
+    initialised agent; the rest of the run state (buffer, env states, ...) is zeros, which has the
+    structure run.py saves and avoids compiling the trainer's full initialisation."""
+    import jax
+
+    from xrl_jax.checkpoint import save_checkpoint
+    from xrl_jax.evaluate import config_document
+    from xrl_jax.explain import _trainer
+    from xrl_jax.train import resolve_config
+
+    cfg = resolve_config("intersection", algo, "smoke")
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps(config_document(cfg, ["test"])))
+    trainer = _trainer(cfg)  # the CLI's loads of this config then reuse it
+    abstract = trainer.abstract_state(1)
+
+    def zeros(leaf):
+        if jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+            return jax.random.split(jax.random.key(0), leaf.shape)
+        return jnp.zeros(leaf.shape, leaf.dtype)
+
+    space = trainer.env.observation_space(trainer.eval_params)
+    ego_obs = {k: jnp.zeros(v.shape, v.dtype) for k, v in space.spaces.items()}
+    agent_state = jax.jit(trainer.agent.init)(jax.random.PRNGKey(cfg.seed), ego_obs)
+    state = jax.tree.map(zeros, abstract).replace(agent=jax.tree.map(lambda x: x[None], agent_state))
+    save_checkpoint(folder / "checkpoints" / "group_0", 0, state, {"next_chunk": 0, "seeds": [0], "step": 0})
+    return folder
+
+
+@pytest.fixture(scope="module")
+def intersection_run(cli, tmp_path_factory):
+    return make_intersection_run_folder(tmp_path_factory.mktemp("runs") / "ix_xdsac", "xdsac")
+
+
+def check_intersection_rows(rows, slot=None):
+    for row in rows:
+        if slot is not None:
+            assert row["slot"] == slot
+        if not row["alive"]:  # the slot is empty at this step: top view, nothing explained
+            assert row["ego"] is None and row["objects"] == [] and row["car"] is None
+            continue
+        assert row["explained"] and isinstance(row["action"], int) and isinstance(row["car"], int)
+        np.testing.assert_allclose(sum(o["weight"] for o in row["objects"]), 1.0, rtol=1e-5)
+        neutral = [o for o in row["objects"] if o["type"] == "neutral"]
+        assert len(neutral) == 1 and neutral[0]["index"] == 0
+        np.testing.assert_allclose([neutral[0]["x"], neutral[0]["y"]], [row["ego"]["x"], row["ego"]["y"]])
+        for item in row["objects"]:
+            if item["type"] != "neutral":
+                assert item["type"] == "vehicle" and item["index"] == item["row"] + 1
+                assert item["slot"] != row["slot"]
+
+
+def test_intersection_png_gif_and_attributions(cli, intersection_run, tmp_path, capsys):
+    png = tmp_path / "ix.png"
+    status, out, err = call(
+        cli, capsys, "--run", intersection_run, "--step", 3, "--out", png, *SMALL_INTERSECTION
+    )
+    assert status == 0, err
+    assert "baseline" not in err and "slot 0" in out
+    assert Image.open(png).size == (320, 180)
+    rows = read_lines(tmp_path / "ix.attributions.jsonl")
+    assert [r["step"] for r in rows] == list(range(20))
+    assert rows[0]["alive"]  # the default slot is the first one holding a car at step 0
+    check_intersection_rows(rows, slot=0)
+    cars = [r["car"] for r in rows if r["alive"]]
+    assert cars == sorted(cars)  # a slot refilled later holds a newer car (larger spawn number)
+
+    gif = tmp_path / "ix.gif"
+    every = tmp_path / "every.jsonl"
+    status, _, err = call(
+        cli, capsys, "--run", intersection_run, "--slot", 2, "--all-slots", "--out", gif,
+        "--attributions", every, *SMALL_INTERSECTION,
+    )  # fmt: skip
+    assert status == 0, err
+    with Image.open(gif) as image:
+        assert image.n_frames == 20
+    all_rows = read_lines(every)
+    check_intersection_rows(all_rows)
+    assert all(r["alive"] for r in all_rows)  # one row per occupied slot and step
+    assert [r for r in all_rows if r["slot"] == 0] == [r for r in rows if r["alive"]]  # same episode
+
+
+def test_intersection_baseline_and_bad_slot(cli, intersection_run, tmp_path, capsys):
+    png = tmp_path / "x.png"
+    one_line_error(
+        *call(cli, capsys, "--run", intersection_run, "--slot", 8, "--out", png)[::2],
+        "--slot 8 out of range",
+        "0..7",
+    )
+    one_line_error(
+        *call(cli, capsys, "--run", intersection_run, "--episode", 2, "--out", png)[::2],
+        "episode 2 out of range",
+    )
+    assert not png.exists()
+    run = make_intersection_run_folder(tmp_path / "ix_dsac", "dsac")
+    status, _, err = call(cli, capsys, "--run", run, "--out", png, *SMALL_INTERSECTION)
+    assert status == 0, err
+    assert "baseline without per-object explanations" in err
+    rows = read_lines(tmp_path / "x.attributions.jsonl")
+    assert len(rows) == 20 and all(not r["explained"] and r["objects"] == [] for r in rows)

@@ -302,3 +302,90 @@ def test_intersection_frame_draws_the_neutral_component_at_the_ego_and_others_at
     np.testing.assert_allclose(
         sorted(np.linalg.norm(boxes[i].anchor) for i in boxes if i > 0), distances, atol=1e-3
     )
+
+
+def test_intersection_objects_name_the_observed_cars_and_put_the_neutral_one_at_the_ego():
+    from envs.intersection import observe, place_vehicles
+    from xrl_jax.explain_figures import intersection_objects
+
+    _, params = envs.make("intersection_discrete", max_vehicles=8)
+    # ego in slot 1 (spawned third); a car ahead (slot 0, spawned last) and one behind (slot 2,
+    # spawned first); slot 3 far away (outside the ±30 m sensor box)
+    poses = [(-1.5, -20.0, np.pi / 2), (-1.5, -30.0, np.pi / 2), (-1.5, -40.0, np.pi / 2), (40.0, 1.5, 0.0)]
+    state = place_vehicles(params, poses, routes=[0, 0, 0, 6], spawn_seq=[9, 7, 2, 3])
+    obs = jax.device_get(jax.jit(observe)(params, state))
+    objects = intersection_objects(state, obs, 1, neutral=True)
+    assert objects.labels[0] == {"type": "neutral"}
+    np.testing.assert_allclose(objects.world_xy[0], [-1.5, -30.0], atol=1e-5)
+    assert objects.present[:3].all() and not objects.present[3:].any()
+    # rows in spawn order: row 0 = the car spawned first (slot 2), row 1 = slot 0
+    assert objects.labels[1] == {"type": "vehicle", "row": 0, "slot": 2, "car": 2}
+    assert objects.labels[2] == {"type": "vehicle", "row": 1, "slot": 0, "car": 9}
+    np.testing.assert_allclose(objects.world_xy[1:3], [[-1.5, -40.0], [-1.5, -20.0]], atol=1e-4)
+    baseline = intersection_objects(state, obs, 1, neutral=True, is_mixture=False)
+    assert baseline.labels == ({"type": "whole_observation"},)
+
+
+def test_evaluation_episode_keys_follow_the_evaluation_protocol():
+    from xrl_jax.evaluate import EVAL_ENV_SEED, evaluation_episode_keys
+
+    reset_keys, stream_keys = evaluation_episode_keys(jnp.arange(3))
+    for j in range(3):
+        expected = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(EVAL_ENV_SEED), j))
+        np.testing.assert_array_equal(reset_keys[j], expected[0])
+        np.testing.assert_array_equal(stream_keys[j], expected[1])
+    one_reset, one_stream = evaluation_episode_keys(2)
+    np.testing.assert_array_equal(one_reset, reset_keys[2])
+    np.testing.assert_array_equal(one_stream, stream_keys[2])
+
+
+@pytest.mark.slow
+def test_multiagent_rollout_replays_the_evaluation_episode():
+    """The recorded episode j is evaluation episode j: same summed return and end-of-episode metrics."""
+    from xrl_jax.evaluate import make_evaluate_multiagent
+    from xrl_jax.explain import make_multiagent_episode_rollout
+
+    env, params = envs.make("intersection_discrete", max_vehicles=8)
+    params = params.replace(episode_steps=12)
+    obs, _ = jax.jit(env.reset)(jax.random.PRNGKey(0), params)
+    ego_obs = jax.tree.map(lambda x: x[0], obs)
+    agent = make_agent(preset("smoke", "intersection", "xdsac"), ego_obs, 12)
+    agent_state = jax.jit(agent.init)(jax.random.PRNGKey(1), ego_obs)
+    evaluation = jax.device_get(
+        jax.jit(make_evaluate_multiagent(env, params, agent, 2))(jax.random.PRNGKey(5), agent_state)
+    )
+    rollout = make_multiagent_episode_rollout(env, agent, 12)
+    for j in range(2):
+        record = jax.device_get(rollout(j, jax.random.PRNGKey(5), params, agent_state))
+        total = np.sum(np.where(record.acted, record.rewards, 0.0))
+        np.testing.assert_allclose(total, evaluation["return"][j], rtol=1e-5, atol=1e-6)
+        assert np.asarray(record.explanations.weights).shape == (12, 8, 9)
+        present = np.asarray(record.explanations.present)[np.asarray(record.acted)]
+        weights = np.asarray(record.explanations.weights)[np.asarray(record.acted)]
+        np.testing.assert_allclose(weights.sum(-1), 1.0, rtol=1e-5)
+        assert present[:, 0].all()  # the neutral component is always there
+
+
+def test_intersection_figures_follow_the_slot_and_name_a_new_car():
+    from types import SimpleNamespace
+
+    from xrl_jax.explain_figures import IntersectionEpisodeFigures, first_alive_slot
+
+    acted = np.zeros((6, 8), bool)
+    acted[[0, 1, 4, 5], 2] = True  # slot 2: car 3 for two steps, empty, then car 11
+    acted[:, 5] = True
+    seq = np.zeros((6, 8), np.int32)
+    seq[:, 2] = [3, 3, 3, 3, 11, 11]
+    seq[:, 5] = 5
+    record = SimpleNamespace(acted=acted, valid=np.ones(6, bool), states=SimpleNamespace(spawn_seq=seq))
+    assert first_alive_slot(record) == 2
+    figures = IntersectionEpisodeFigures(None, record, 2)
+    assert [figures.car(t) for t in range(6)] == [3, 3, None, None, 11, 11]
+    assert [figures.new_car(t) for t in range(6)] == [False, False, False, False, True, False]
+    assert figures.title(0, "x") == "x step 0\nslot 2 car 3"
+    assert figures.title(2) == "step 2\nslot 2 empty"
+    assert figures.title(4) == "step 4\nslot 2 car 11 (new car)"
+    with pytest.raises(ValueError, match="slot 8 out of range"):
+        IntersectionEpisodeFigures(None, record, 8)
+    with pytest.raises(ValueError, match="beyond the episode"):
+        figures.step(6)

@@ -110,6 +110,26 @@ def make_evaluate(env, eval_params, agent, num_episodes: int):
 EVAL_ENV_SEED = 0  # multi-agent evaluation: episode i always replays the env randomness of key (0, i)
 
 
+def evaluation_episode_keys(episodes) -> tuple[jax.Array, jax.Array]:
+    """``(reset_keys, stream_keys)`` of multi-agent evaluation episodes ``episodes`` (int array (E,)).
+
+    Episode i's env randomness is ``fold_in(PRNGKey(EVAL_ENV_SEED), i)`` split into the reset key
+    and a stream whose step-t key is ``fold_in(stream_key, t)`` (see :func:`evaluation_step_key`);
+    the protocol of :func:`make_evaluate_multiagent`, so a replay of episode i (e.g. the
+    explanation figures) sees exactly the evaluation's traffic.
+    """
+    episodes = jnp.asarray(episodes, jnp.int32)
+    base = jax.random.PRNGKey(EVAL_ENV_SEED)
+    episode_keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(episodes.reshape(-1))
+    reset_keys, stream_keys = jnp.unstack(jax.vmap(jax.random.split)(episode_keys), axis=1)
+    return reset_keys.reshape(*episodes.shape, -1), stream_keys.reshape(*episodes.shape, -1)
+
+
+def evaluation_step_key(stream_key: jax.Array, t) -> jax.Array:
+    """The env key of step ``t`` of an evaluation episode from its stream key."""
+    return jax.random.fold_in(stream_key, t)
+
+
 def make_evaluate_multiagent(env, eval_params, agent, num_episodes: int):
     """``evaluate(key, agent_state) -> per-episode arrays`` for the multi-agent Intersection
     (intersection spec §8.8): ``num_episodes`` episodes of ``eval_params.episode_steps`` steps with
@@ -120,10 +140,7 @@ def make_evaluate_multiagent(env, eval_params, agent, num_episodes: int):
     velocity); early terminations = off-road + collided vehicles.
     """
     steps = int(eval_params.episode_steps)
-    episode_keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(EVAL_ENV_SEED), i))(
-        jnp.arange(num_episodes)
-    )
-    reset_keys, stream_keys = jnp.unstack(jax.vmap(jax.random.split)(episode_keys), axis=1)
+    reset_keys, stream_keys = evaluation_episode_keys(jnp.arange(num_episodes))
     reset_all = jax.vmap(env.reset, in_axes=(0, None))
     step_all = jax.vmap(env.step, in_axes=(0, 0, 0, None))
     metric_keys = ("trips_completed", "come_off_vehicles", "collided_vehicles", "mean_velocity")
@@ -136,7 +153,7 @@ def make_evaluate_multiagent(env, eval_params, agent, num_episodes: int):
             obs, env_state, returns, key = carry
             key, act_key = jax.random.split(key)
             action = agent.act(act_key, agent_state, obs, "eval")
-            step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(stream_keys, t)
+            step_keys = jax.vmap(evaluation_step_key, in_axes=(0, None))(stream_keys, t)
             obs, env_state, reward, _, _, info = step_all(step_keys, env_state, action, eval_params)
             returns = returns + jnp.sum(jnp.where(info["acted"], reward, 0.0), axis=-1)
             return (obs, env_state, returns, key), {k: info[k] for k in metric_keys}

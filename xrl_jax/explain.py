@@ -12,6 +12,7 @@ observation), so figures can still show their action distribution.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -25,6 +26,7 @@ from xrl_jax.distributions import (
     CategoricalMixture,
     SquashedGaussianMixture,
 )
+from xrl_jax.evaluate import evaluation_episode_keys, evaluation_step_key
 
 Policy = SquashedGaussianMixture | CategoricalMixture
 
@@ -197,6 +199,15 @@ class RunError(ValueError):
     """A results folder that cannot give the requested trained agent; the message is one line."""
 
 
+@functools.lru_cache(maxsize=2)
+def _trainer(cfg):
+    """The run's trainer, shared by repeated loads of one config in a process (its agent, and so
+    the compiled episode rollouts, are then reused)."""
+    from xrl_jax.train import get_trainer
+
+    return get_trainer(cfg)
+
+
 def load_trained_agent(run_dir, seed: int = 0):
     """``(config, trainer, agent_state)`` of seed ``seed`` from the newest checkpoint of a results folder.
 
@@ -208,7 +219,7 @@ def load_trained_agent(run_dir, seed: int = 0):
     from pathlib import Path
 
     from xrl_jax.checkpoint import Checkpointer
-    from xrl_jax.train import TrainConfig, get_trainer
+    from xrl_jax.train import TrainConfig
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -236,10 +247,98 @@ def load_trained_agent(run_dir, seed: int = 0):
     try:
         if checkpointer.latest_step() is None:
             raise RunError(f"no checkpoint in {directory}")
-        trainer = get_trainer(cfg)
+        trainer = _trainer(cfg)
         state, meta = checkpointer.restore(trainer.abstract_state(len(groups[group_index])))
     finally:
         checkpointer.close()
     row = list(meta.get("seeds", groups[group_index])).index(seed)
     agent_state = jax.tree.map(lambda leaf: leaf[row], state.agent)
     return cfg, trainer, agent_state
+
+
+# ------------------------------------------------------------------------------------------------
+# Multi-agent (Intersection): one evaluation episode, every slot explained
+# ------------------------------------------------------------------------------------------------
+
+
+@struct.dataclass
+class MultiAgentEpisodeRecord:
+    """One multi-agent episode: time axis T, then the slot axis (8) on every per-agent field.
+
+    Step t holds the state s_t and the per-slot observations o_t, the explanation of every slot's
+    policy at o_t (also of empty slots, whose all-zero observation makes it meaningless: use
+    ``acted``), the actions and their controls, and per slot the reward, end flags and
+    ``done_reason`` (0 none, 1 route completed, 2 left the road, 3 collided) of the step.
+    ``acted[t, s]``: slot s held a car in s_t (its entries are meaningful); ``alive[t, s]``: it
+    holds one after the step. A slot whose car ended can later be refilled by a NEW car (a larger
+    ``states.spawn_seq``). ``valid`` is all True (kept for the single-agent record's interface).
+    """
+
+    states: Any
+    obs: Any
+    explanations: Explanation
+    actions: jax.Array
+    controls: jax.Array  # (T, 8, 3)
+    rewards: jax.Array
+    terminated: jax.Array
+    truncated: jax.Array
+    done_reason: jax.Array
+    acted: jax.Array
+    alive: jax.Array
+    valid: jax.Array
+
+    @property
+    def length(self) -> jax.Array:
+        return jnp.sum(self.valid.astype(jnp.int32), axis=-1)
+
+
+@functools.lru_cache(maxsize=4)  # one compilation per (env, agent, length) in a process
+def make_multiagent_episode_rollout(env, agent, max_steps: int, mode: str = "eval") -> Callable:
+    """``rollout(episode, key, params, agent_state) -> MultiAgentEpisodeRecord``, jitted, one ``lax.scan``.
+
+    Replays evaluation episode ``episode`` of a multi-agent env (keys of
+    :func:`evaluation_episode_keys`; use the trainer's ``eval_params``, 8 vehicles) for
+    ``max_steps`` steps (at most ``params.episode_steps``: beyond it the env restarts itself). Every
+    slot acts with the agent's ``mode`` (default its evaluation policy); ``key`` feeds the policy's
+    own randomness (XSAC samples), split per step like the evaluation.
+    """
+    max_steps = int(max_steps)
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be a positive integer, got {max_steps}")
+    to_control = discrete_to_control if agent.is_discrete else continuous_to_control
+
+    def rollout(episode, key, params, agent_state) -> MultiAgentEpisodeRecord:
+        if max_steps > int(params.episode_steps):
+            raise ValueError(f"max_steps {max_steps} exceeds the episode length {params.episode_steps}")
+        reset_key, stream_key = evaluation_episode_keys(episode)
+        obs, state = env.reset(reset_key, params)
+
+        def step(carry, t):
+            obs, state, key = carry
+            key, act_key = jax.random.split(key)
+            explanation = explain(agent, agent_state, obs)
+            action = agent.act(act_key, agent_state, obs, mode)
+            next_obs, next_state, reward, terminated, truncated, info = env.step(
+                evaluation_step_key(stream_key, t), state, action, params
+            )
+            out = {
+                "states": state,
+                "obs": obs,
+                "explanations": explanation,
+                "actions": action,
+                "controls": to_control(action),
+                "rewards": reward,
+                "terminated": terminated,
+                "truncated": truncated,
+                "done_reason": info["done_reason"],
+                "acted": info["acted"],
+                "alive": info["alive"],
+                "valid": jnp.ones((), bool),
+            }
+            return (next_obs, next_state, key), out
+
+        steps = jnp.arange(max_steps, dtype=jnp.int32)
+        _, outs = jax.lax.scan(step, (obs, state, key), steps)
+        return MultiAgentEpisodeRecord(**outs)
+
+    return jax.jit(rollout)
