@@ -26,6 +26,9 @@ def test_presets_resolve_with_the_spec_values():
     assert resolve_config("tracking", "xdsac", "paper").env_name == "tracking_discrete"
     quick = resolve_config("tracking", "xdsac", "quick", num_seeds=4)
     assert quick.total_steps < paper.total_steps and quick.agent.actor_width == 64 and quick.num_seeds == 4
+    assert (quick.agent.init_alpha, quick.agent.alpha_lr, quick.agent.gamma) == (0.005, 1e-3, 0.98)
+    ix = resolve_config("intersection", "xdsac", "quick").agent  # keeps the paper's fixed α = 0.015
+    assert (ix.init_alpha, ix.auto_alpha, ix.gamma) == (0.015, False, 0.95)
     smoke = resolve_config("country_road", "sac", "smoke", total_steps=128)
     assert smoke.total_steps == 128 and smoke.agent.actor_width == 16
 
@@ -178,6 +181,6 @@ def test_quick_preset_learns_on_tracking(tmp_path):
     assert summary["complete"]
     first = np.mean([read_jsonl(tmp_path / "eval" / f"seed_{s}.jsonl")[0]["avg_return"] for s in range(2)])
     final = summary["aggregate"]["avg_return"]["estimate"]
-    # Measured with 4 seeds: first evaluation ~0.8, final IQM 4.3 [1.9, 11.4] (the quick budget is far
-    # from the hand-written controller's 36.5; this only checks that learning happens).
-    assert final > first + 1.0, (first, final)
+    # Measured (seeds 0-1): first evaluation 1.0, final IQM 14.9 [14.6, 15.2]; still far from the
+    # hand-written controller's 36.5, so this only checks that learning clearly happens.
+    assert final > first + 5.0, (first, final)

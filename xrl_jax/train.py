@@ -269,11 +269,28 @@ def _intersection_train_fields(preset: str) -> dict[str, Any]:
     }
 
 
+# The quick preset's optimisation constants for the racing scenarios, tuned for a 30k-step budget
+# (measured on Tracking XDSAC, 2 seeds: final evaluation return 14.9 against 4.3 with the paper's).
+# The paper starts at α = 0.1 and moves log α with lr 1e-4, so for ~20k steps the entropy bonus
+# (0.1·ln 12 ≈ 0.25 per step) outweighs the reward (≤ ~0.1 per step) and the policy stays nearly
+# uniform; over the paper's 10⁶ steps that start-up phase does not matter, over 30k it is everything.
+QUICK_RACING_OPTIMISATION = {
+    "init_alpha": 0.005,
+    "alpha_lr": 1e-3,
+    "actor_lr": 3e-4,
+    "critic_lr": 3e-4,
+    "gamma": 0.98,  # 0.95 learns to drive fast but crashes; 0.99 learns to stand still
+}
+
+
 def _preset_agent(preset: str, env: str, algo: str) -> AgentConfig:
-    if preset == "quick":  # paper optimisation constants, width 64 networks
-        return agent_config_mod.preset("paper", env, algo).replace(
+    if preset == "quick":  # width-64 networks; short-budget optimisation constants on the racing envs
+        quick = agent_config_mod.preset("paper", env, algo).replace(
             actor_width=64, critic_width=64, fe_width=32, actor_depth=2, critic_depth=2
         )
+        if env != "intersection":  # Intersection keeps its fixed α = 0.015 (no start-up phase)
+            quick = quick.replace(**QUICK_RACING_OPTIMISATION)
+        return quick
     return agent_config_mod.preset(preset, env, algo)
 
 
@@ -621,21 +638,41 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         hit = (last // period) * period >= jnp.maximum(first_transition, 1)  # unbatched: a real branch
         return jax.lax.cond(hit, lambda a: agent.init(key, obs_example, a.hparams), lambda a: a, agent_state)
 
-    def choose_actions(state, agent_state, first_transition, act_key, random_key):
+    def act_and_step(state: RunState, t):
+        """The common start of a vector step: (re-initialise,) act (random during warm-up), step the
+        envs. Returns the next run key, the update key, the agent state, the action, which envs are
+        still warming up, and the env step's outputs."""
+        key, act_key, random_key, env_key, update_key, reinit_key = jax.random.split(state.key, 6)
+        first_transition = t * num_envs
+        agent_state = maybe_reinitialise(state.agent, first_transition, reinit_key)
         policy_action = agent.act(act_key, agent_state, state.obs, "train")
         random_action = agent.random_action(random_key, actors)
         warm_env = first_transition + jnp.arange(num_envs) < warmup
         warm = warm_env.reshape(warm_env.shape + (1,) * (policy_action.ndim - 1))
-        return jnp.where(warm, random_action, policy_action), warm_env
+        action = jnp.where(warm, random_action, policy_action)
+        step = venv.step(env_key, state.env_state, action, params)
+        return key, update_key, agent_state, action, warm_env, step
+
+    def episode_bookkeeping(state, reward, counted, done, terminated, velocity):
+        """Per-actor running episode return and length (actors: envs, or env × vehicle slot);
+        finished episodes enter the rolling window and restart from zero."""
+        episode_return = state.episode_return + reward
+        episode_length = state.episode_length + counted.astype(jnp.int32)
+        early = terminated & (reward < EARLY_TERMINATION_REWARD)
+        velocity = jnp.broadcast_to(velocity, done.shape)
+        window = _window_add(
+            state.window, *(x.reshape(-1) for x in (done, episode_return, episode_length, early, velocity))
+        )
+        return {
+            "episode_return": jnp.where(done, 0.0, episode_return).astype(float_dtype),
+            "episode_length": jnp.where(done, 0, episode_length),
+            "window": window,
+        }
 
     def vector_step(state: RunState, t):
-        key, act_key, random_key, env_key, update_key, reinit_key = jax.random.split(state.key, 6)
+        key, update_key, agent_state, action, _, step = act_and_step(state, t)
+        next_obs, env_state, reward, terminated, truncated, info = step
         first_transition = t * num_envs
-        agent_state = maybe_reinitialise(state.agent, first_transition, reinit_key)
-        action, _ = choose_actions(state, agent_state, first_transition, act_key, random_key)
-        next_obs, env_state, reward, terminated, truncated, info = venv.step(
-            env_key, state.env_state, action, params
-        )
         buffer = buffer_add(
             state.buffer, state.obs, action, reward, terminated, truncated,
             next_obs=info["final_obs"] if explicit else None,
@@ -656,21 +693,15 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
             scan_updates, agent_state, (jnp.arange(num_envs), jax.random.split(update_key, num_envs))
         )
         done = terminated | truncated
-        episode_return = state.episode_return + reward
-        episode_length = state.episode_length + 1
-        early = terminated & (reward < EARLY_TERMINATION_REWARD)
-        window = _window_add(
-            state.window, done, episode_return, episode_length, early, info["avg_track_velocity"]
-        )
         new_state = state.replace(
             agent=agent_state,
             buffer=buffer,
             env_state=env_state,
             obs=next_obs,
             key=key,
-            episode_return=jnp.where(done, 0.0, episode_return).astype(float_dtype),
-            episode_length=jnp.where(done, 0, episode_length),
-            window=window,
+            **episode_bookkeeping(
+                state, reward, jnp.ones_like(done), done, terminated, info["avg_track_velocity"]
+            ),
         )
         out = {
             "reward_sum": jnp.sum(jnp.where(truncated, 0.0, reward)),
@@ -684,13 +715,8 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         """One step of E multi-agent envs: every agent alive at the start of the step acts; its
         transition is stored (packed) and, after warm-up, followed by one gradient step (intersection
         spec §8.5: updates = agent transitions, 0..8 per env step, done as an exact ``while_loop``)."""
-        key, act_key, random_key, env_key, update_key, reinit_key = jax.random.split(state.key, 6)
-        first_transition = t * num_envs
-        agent_state = maybe_reinitialise(state.agent, first_transition, reinit_key)
-        action, warm_env = choose_actions(state, agent_state, first_transition, act_key, random_key)
-        next_obs, env_state, reward, terminated, truncated, info = venv.step(
-            env_key, state.env_state, action, params
-        )
+        key, update_key, agent_state, action, warm_env, step = act_and_step(state, t)
+        next_obs, env_state, reward, terminated, truncated, info = step
         acted = info["acted"]
 
         def flat(x):
@@ -721,14 +747,6 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         )
         reward = jnp.where(acted, reward, 0.0)
         agent_done = acted & (terminated | truncated)
-        episode_return = state.episode_return + reward
-        episode_length = state.episode_length + acted.astype(jnp.int32)
-        early = terminated & (reward < EARLY_TERMINATION_REWARD)
-        velocity = jnp.broadcast_to(info["mean_velocity"][:, None], acted.shape)
-        window = _window_add(
-            state.window, flat(agent_done), flat(episode_return), flat(episode_length), flat(early),
-            flat(velocity),
-        )  # fmt: skip
         ended = info["episode_end"]
         new_state = state.replace(
             agent=agent_state,
@@ -736,9 +754,9 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
             env_state=env_state,
             obs=next_obs,
             key=key,
-            episode_return=jnp.where(agent_done, 0.0, episode_return).astype(float_dtype),
-            episode_length=jnp.where(agent_done, 0, episode_length),
-            window=window,
+            **episode_bookkeeping(
+                state, reward, acted, agent_done, terminated, info["mean_velocity"][:, None]
+            ),
         )
         out = {
             "reward_sum": jnp.sum(reward),
