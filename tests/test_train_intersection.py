@@ -78,3 +78,10 @@ def test_cli_offers_every_trainable_env():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     assert module.ENVS == train_mod.ENVS
+
+
+def test_a_buffer_smaller_than_one_step_of_all_agents_is_refused():
+    with pytest.raises(train_mod.ConfigError, match="one step of all agents"):
+        train_mod.resolve_config(
+            "intersection", "xdsac", "smoke", overrides={"buffer_size": "8", "batch_size": "8"}
+        )

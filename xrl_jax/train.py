@@ -193,8 +193,13 @@ def _validate_train(cfg: TrainConfig) -> None:
         raise ConfigError(f"warmup_steps ({cfg.warmup_steps}) must be at least num_envs ({e})")
     if cfg.buffer_size < cfg.batch_size:
         raise ConfigError(f"buffer_size ({cfg.buffer_size}) must be at least batch_size ({cfg.batch_size})")
-    if cfg.multi_agent and cfg.buffer_size < 8 * e:
-        raise ConfigError(f"buffer_size ({cfg.buffer_size}) must hold one step of all agents ({8 * e})")
+    if cfg.multi_agent:
+        from envs.intersection import MAX_AGENTS
+
+        if cfg.buffer_size < MAX_AGENTS * e:
+            raise ConfigError(
+                f"buffer_size ({cfg.buffer_size}) must hold one step of all agents ({MAX_AGENTS * e})"
+            )
 
 
 def _preset_train_fields(preset: str, env: str, algo: str) -> dict[str, Any]:
@@ -620,7 +625,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         return agent.update(update_key, agent_state, data)
 
     abstract_agent = jax.eval_shape(agent.init, jax.random.PRNGKey(0), obs_example)
-    abstract_buffer = jax.eval_shape(lambda: new_buffer(max(cfg.batch_size, 8 * num_envs)))
+    abstract_buffer = jax.eval_shape(lambda: new_buffer(max(cfg.batch_size, math.prod(actors))))
     metric_shapes = jax.eval_shape(sample_and_update, abstract_agent, abstract_buffer, jax.random.PRNGKey(0))[
         1
     ]
