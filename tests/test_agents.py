@@ -544,7 +544,8 @@ def intersection_observation(key, batch_shape, max_present=7):
     return {"vehicles_set": rows, "state": state}
 
 
-@pytest.mark.parametrize("algo", ["xsac", "xdsac"])
+# XDSAC also acts and updates on Intersection batches in tests/test_train_intersection.py.
+@pytest.mark.parametrize("algo", ["xsac", pytest.param("xdsac", marks=pytest.mark.slow)])
 def test_intersection_agent_acts_on_agent_batches_and_updates(algo):
     from xrl_jax.config import preset
     from xrl_jax.networks import ENV_OBSERVATIONS

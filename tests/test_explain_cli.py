@@ -253,7 +253,7 @@ def test_intersection_png_gif_and_attributions(cli, intersection_run, tmp_path, 
     assert [r for r in all_rows if r["slot"] == 0] == [r for r in rows if r["alive"]]  # same episode
 
 
-def test_intersection_baseline_and_bad_slot(cli, intersection_run, tmp_path, capsys):
+def test_intersection_bad_slot_and_episode(cli, intersection_run, tmp_path, capsys):
     png = tmp_path / "x.png"
     one_line_error(
         *call(cli, capsys, "--run", intersection_run, "--slot", 8, "--out", png)[::2],
@@ -265,6 +265,11 @@ def test_intersection_baseline_and_bad_slot(cli, intersection_run, tmp_path, cap
         "episode 2 out of range",
     )
     assert not png.exists()
+
+
+@pytest.mark.slow  # compiles a second intersection agent; the racing baseline test covers the message
+def test_intersection_baseline_shows_only_its_distribution(cli, tmp_path, capsys):
+    png = tmp_path / "x.png"
     run = make_intersection_run_folder(tmp_path / "ix_dsac", "dsac")
     status, _, err = call(cli, capsys, "--run", run, "--out", png, *SMALL_INTERSECTION)
     assert status == 0, err
