@@ -146,6 +146,22 @@ def single_track_params(params, index: int):
     return params.replace(**changes)
 
 
+def _step_record(agent, agent_state, state, obs, action, reward, terminated, truncated) -> dict:
+    """The fields every episode record stores per step: the state and observation the action was
+    taken in, the policy's explanation there, the action and its mapped control, and the outcome."""
+    to_control = discrete_to_control if agent.is_discrete else continuous_to_control
+    return {
+        "states": state,
+        "obs": obs,
+        "explanations": explain(agent, agent_state, obs),
+        "actions": action,
+        "controls": to_control(action),
+        "rewards": reward,
+        "terminated": terminated,
+        "truncated": truncated,
+    }
+
+
 def make_episode_rollout(env, agent, max_steps: int, mode: str = "eval") -> Callable:
     """``rollout(key, params, agent_state) -> EpisodeRecord``, jitted: one episode as one ``lax.scan``.
 
@@ -156,7 +172,6 @@ def make_episode_rollout(env, agent, max_steps: int, mode: str = "eval") -> Call
     """
     if int(max_steps) < 1:
         raise ValueError(f"max_steps must be a positive integer, got {max_steps}")
-    to_control = discrete_to_control if agent.is_discrete else continuous_to_control
 
     def rollout(key, params, agent_state) -> EpisodeRecord:
         reset_key, key = jax.random.split(key)
@@ -165,7 +180,6 @@ def make_episode_rollout(env, agent, max_steps: int, mode: str = "eval") -> Call
         def step(carry, step_key):
             obs, state, done = carry
             act_key, env_key = jax.random.split(step_key)
-            explanation = explain(agent, agent_state, obs)
             action = agent.act(act_key, agent_state, obs, mode)
             next_obs, next_state, reward, terminated, truncated, _ = env.step_env(
                 env_key, state, action, params
@@ -174,17 +188,8 @@ def make_episode_rollout(env, agent, max_steps: int, mode: str = "eval") -> Call
             def freeze(new, old):
                 return jax.tree.map(lambda n, o: jnp.where(done, o, n), new, old)
 
-            out = {
-                "states": state,
-                "obs": obs,
-                "explanations": explanation,
-                "actions": action,
-                "controls": to_control(action),
-                "rewards": reward,
-                "terminated": terminated,
-                "truncated": truncated,
-                "valid": ~done,
-            }
+            out = _step_record(agent, agent_state, state, obs, action, reward, terminated, truncated)
+            out["valid"] = ~done
             carry = (freeze(next_obs, obs), freeze(next_state, state), done | terminated | truncated)
             return carry, out
 
@@ -305,7 +310,6 @@ def make_multiagent_episode_rollout(env, agent, max_steps: int, mode: str = "eva
     max_steps = int(max_steps)
     if max_steps < 1:
         raise ValueError(f"max_steps must be a positive integer, got {max_steps}")
-    to_control = discrete_to_control if agent.is_discrete else continuous_to_control
 
     def rollout(episode, key, params, agent_state) -> MultiAgentEpisodeRecord:
         if max_steps > int(params.episode_steps):
@@ -316,25 +320,12 @@ def make_multiagent_episode_rollout(env, agent, max_steps: int, mode: str = "eva
         def step(carry, t):
             obs, state, key = carry
             key, act_key = jax.random.split(key)
-            explanation = explain(agent, agent_state, obs)
             action = agent.act(act_key, agent_state, obs, mode)
             next_obs, next_state, reward, terminated, truncated, info = env.step(
                 evaluation_step_key(stream_key, t), state, action, params
             )
-            out = {
-                "states": state,
-                "obs": obs,
-                "explanations": explanation,
-                "actions": action,
-                "controls": to_control(action),
-                "rewards": reward,
-                "terminated": terminated,
-                "truncated": truncated,
-                "done_reason": info["done_reason"],
-                "acted": info["acted"],
-                "alive": info["alive"],
-                "valid": jnp.ones((), bool),
-            }
+            out = _step_record(agent, agent_state, state, obs, action, reward, terminated, truncated)
+            out.update({k: info[k] for k in ("done_reason", "acted", "alive")}, valid=jnp.ones((), bool))
             return (next_obs, next_state, key), out
 
         steps = jnp.arange(max_steps, dtype=jnp.int32)
