@@ -56,6 +56,18 @@ def bench_matmul(size: int = 2048, repeats: int = 5) -> dict:
     return {"size": size, "seconds": seconds, "gflops": 2 * size**3 / seconds / 1e9}
 
 
+def compile_rollout(reset, rollout, key):
+    """First calls of a jitted ``reset(key)`` and ``rollout(key, state)``: returns the reset state,
+    the rollout's output and the two first-call times (compilation plus one run each)."""
+    start = time.perf_counter()
+    _, state = jax.block_until_ready(reset(key))
+    reset_compile = time.perf_counter() - start
+    start = time.perf_counter()
+    output = jax.block_until_ready(rollout(key, state))
+    rollout_compile = time.perf_counter() - start
+    return state, output, {"reset": reset_compile, "rollout": rollout_compile}
+
+
 def bench_env(scenario: str, batch: int, steps: int, repeats: int) -> dict:
     """Env-steps/s of ``batch`` auto-resetting envs driven by random actions inside one ``lax.scan``."""
     import envs
@@ -79,12 +91,7 @@ def bench_env(scenario: str, batch: int, steps: int, repeats: int) -> dict:
         return jax.lax.scan(body, state, jax.random.split(key, steps))
 
     key = jax.random.PRNGKey(0)
-    start = time.perf_counter()
-    _, state = jax.block_until_ready(reset(key))
-    reset_compile = time.perf_counter() - start
-    start = time.perf_counter()
-    jax.block_until_ready(rollout(key, state))
-    rollout_compile = time.perf_counter() - start
+    state, _, compile_s = compile_rollout(reset, rollout, key)
     reset_seconds = timed(lambda: reset(key), repeats)
     rollout_seconds = timed(lambda: rollout(key, state), repeats)
     return {
@@ -93,7 +100,7 @@ def bench_env(scenario: str, batch: int, steps: int, repeats: int) -> dict:
         "steps_per_call": steps,
         "env_steps_per_s": batch * steps / rollout_seconds,
         "reset_us_per_env": 1e6 * reset_seconds / batch,
-        "compile_s": {"reset": reset_compile, "rollout": rollout_compile},
+        "compile_s": compile_s,
     }
 
 
@@ -127,12 +134,7 @@ def bench_intersection(max_vehicles: int, batch: int, steps: int, repeats: int, 
         return state, agent_steps, rewards
 
     key = jax.random.PRNGKey(0)
-    start = time.perf_counter()
-    _, state = jax.block_until_ready(reset(key))
-    reset_compile = time.perf_counter() - start
-    start = time.perf_counter()
-    _, agent_steps, _ = jax.block_until_ready(rollout(key, state))
-    rollout_compile = time.perf_counter() - start
+    state, (_, agent_steps, _), compile_s = compile_rollout(reset, rollout, key)
     rollout_seconds = timed(lambda: rollout(key, state), repeats)
     return {
         "scenario": name,
@@ -142,7 +144,7 @@ def bench_intersection(max_vehicles: int, batch: int, steps: int, repeats: int, 
         "env_steps_per_s": batch * steps / rollout_seconds,
         "agent_steps_per_s": int(agent_steps) / rollout_seconds,
         "mean_alive_agents": int(agent_steps) / (batch * steps),
-        "compile_s": {"reset": reset_compile, "rollout": rollout_compile},
+        "compile_s": compile_s,
     }
 
 

@@ -267,7 +267,7 @@ def load_trained_agent(run_dir, seed: int = 0):
 
 
 @struct.dataclass
-class MultiAgentEpisodeRecord:
+class MultiAgentEpisodeRecord(EpisodeRecord):
     """One multi-agent episode: time axis T, then the slot axis (8) on every per-agent field.
 
     Step t holds the state s_t and the per-slot observations o_t, the explanation of every slot's
@@ -277,24 +277,12 @@ class MultiAgentEpisodeRecord:
     ``acted[t, s]``: slot s held a car in s_t (its entries are meaningful); ``alive[t, s]``: it
     holds one after the step. A slot whose car ended can later be refilled by a NEW car (a larger
     ``states.spawn_seq``). ``valid`` is all True (kept for the single-agent record's interface).
+    Fields beyond :class:`EpisodeRecord`'s carry the slot axis too (controls are (T, 8, 3)).
     """
 
-    states: Any
-    obs: Any
-    explanations: Explanation
-    actions: jax.Array
-    controls: jax.Array  # (T, 8, 3)
-    rewards: jax.Array
-    terminated: jax.Array
-    truncated: jax.Array
     done_reason: jax.Array
     acted: jax.Array
     alive: jax.Array
-    valid: jax.Array
-
-    @property
-    def length(self) -> jax.Array:
-        return jnp.sum(self.valid.astype(jnp.int32), axis=-1)
 
 
 @functools.lru_cache(maxsize=4)  # one compilation per (env, agent, length) in a process
