@@ -59,7 +59,8 @@ presets:
 results folder:
   config.json (resolved config, versions, git commit), metrics/seed_<i>.jsonl (every
   log_interval steps), eval/seed_<i>.jsonl, checkpoints/, summary.json (IQM and 95 % stratified
-  bootstrap CI over seeds). An existing folder is never overwritten: use --resume to continue it.
+  bootstrap CI over seeds, at the end and at every evaluation step) and learning_curve.png.
+  An existing folder is never overwritten: use --resume to continue it.
 
 environment: XRL_JAX_CACHE_DIR (default ~/.cache/xrl-jax) caches generated tracks and compiled code.
 """
@@ -246,6 +247,8 @@ def main(argv: list[str] | None = None) -> int:
             f"run.py: stopped early; continue with: python experiments/run.py --resume {out}", file=sys.stderr
         )
         return 1
+    print(evaluate_mod.format_curve(summary))
+    print()
     print(evaluate_mod.format_table(summary))
     print(f"results: {out}")
     return 0

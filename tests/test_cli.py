@@ -83,13 +83,16 @@ def test_smoke_run_leaves_a_complete_results_folder(smoke_run):
     summary = json.loads((smoke_run / "summary.json").read_text())
     assert summary["complete"] and summary["seeds"] == [0, 1]
     assert set(summary["aggregate"]) >= {"avg_return", "avg_etr"}
+    assert [p["step"] for p in summary["curve"]] == [192]
+    assert summary["curve"][-1]["avg_return"]["estimate"] == summary["aggregate"]["avg_return"]["estimate"]
+    assert (smoke_run / "learning_curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert any((smoke_run / "checkpoints" / "group_0").iterdir())
 
 
 def test_same_seed_gives_identical_metrics_and_other_seeds_differ(run, smoke_run, tmp_path, capsys):
     again = tmp_path / "again"
     status, out, _ = call(run, capsys, *SMOKE, "--out", str(again))
-    assert status == 0 and "final return" in out and "IQM" in out
+    assert status == 0 and "final return" in out and "IQM" in out and "learning curve" in out
     assert files_of(again, "metrics") == files_of(smoke_run, "metrics")
     assert files_of(again, "eval") == files_of(smoke_run, "eval")
     first = files_of(smoke_run, "metrics")

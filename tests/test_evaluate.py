@@ -9,7 +9,15 @@ import pytest
 from train_support import prepare_cache
 
 from xrl_jax import stats
-from xrl_jax.evaluate import format_table, make_evaluate, summarize_episodes, summarize_run
+from xrl_jax.evaluate import (
+    format_curve,
+    format_table,
+    learning_curve,
+    make_evaluate,
+    plot_learning_curve,
+    summarize_episodes,
+    summarize_run,
+)
 from xrl_jax.train import make_envs, resolve_config
 
 
@@ -94,8 +102,35 @@ def test_summary_reports_iqm_and_bootstrap_ci_over_seeds(tmp_path):
     assert "final return" in table and "20.000" in table and "early-termination rate" in table
 
 
+def test_learning_curve_aggregates_every_step_all_seeds_reached(tmp_path):
+    cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=4)
+    (tmp_path / "eval").mkdir()
+    returns = {64: [1.0, 2.0, 3.0, 40.0], 128: [5.0, 6.0, 7.0, 8.0], 192: [9.0, 10.0, 11.0, 12.0]}
+    for seed in range(4):
+        steps = (64, 128, 128, 192) if seed < 3 else (64, 128)  # seed 3 stopped early; 128 rewritten once
+        rows = []
+        for i, step in enumerate(steps):
+            stale = seed < 3 and step == 128 and i == 1  # rewritten after a resume: the last row wins
+            value = -100.0 if stale else returns[step][seed]
+            rows.append({"step": step, "avg_return": value, "avg_etr": 0.5, "avg_episode_length": 10.0})
+        (tmp_path / "eval" / f"seed_{seed}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    curve = learning_curve(tmp_path, cfg)
+    assert [p["step"] for p in curve] == [64, 128]  # 192 is missing for seed 3
+    # IQM of 4 values drops one at each end: mean(2, 3) = 2.5, mean(6, 7) = 6.5.
+    assert [p["avg_return"]["estimate"] for p in curve] == [pytest.approx(2.5), pytest.approx(6.5)]
+    assert curve[1]["avg_return"]["per_seed"] == [5.0, 6.0, 7.0, 8.0]
+    assert curve[0]["avg_return"]["mean"] == pytest.approx(11.5)
+    assert curve[0]["avg_return"]["low"] <= 2.5 <= curve[0]["avg_return"]["high"]
+    summary = summarize_run(tmp_path, cfg)
+    assert summary["curve"] == curve and not summary["complete"]
+    text = format_curve(summary)
+    assert "2.500 [" in text and "6.500 [" in text and "early-termination rate" in text
+    png = plot_learning_curve(summary, tmp_path / "curve.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_summary_of_an_unfinished_run_is_marked_incomplete(tmp_path):
     cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=2)
     summary = summarize_run(tmp_path, cfg)
-    assert not summary["complete"] and summary["aggregate"] == {}
+    assert not summary["complete"] and summary["aggregate"] == {} and summary["curve"] == []
     assert "no final evaluation" in format_table(summary)

@@ -225,16 +225,52 @@ def summary_metrics(env: str) -> tuple[tuple[str, str], ...]:
     return MULTI_AGENT_SUMMARY_METRICS if env == "intersection" else SUMMARY_METRICS
 
 
+def _seed_evaluations(out: Path, cfg) -> list[dict[int, dict]]:
+    """Per seed, its evaluation rows by step (the last row of a step wins: a resumed run rewrites)."""
+    return [
+        {r["step"]: r for r in read_jsonl(out / "eval" / f"seed_{seed}.jsonl") if "step" in r}
+        for seed in range(cfg.num_seeds)
+    ]
+
+
+def _aggregate(scores: np.ndarray) -> dict[str, Any]:
+    """IQM with its 95 % stratified bootstrap CI, the mean and the per-seed values."""
+    interval = stats.stratified_bootstrap_ci(scores, stats.iqm, confidence=0.95)
+    return {**interval.as_dict(), "mean": float(scores.mean()), "n": int(scores.size)}
+
+
+def _aggregate_metrics(rows: list[dict], env: str) -> dict[str, Any]:
+    """:func:`_aggregate` of every summary metric over ``rows`` (one per seed); non-finite ones skipped."""
+    result = {}
+    for key, _ in summary_metrics(env):
+        scores = np.array([row.get(key, np.nan) for row in rows], np.float64)
+        if np.all(np.isfinite(scores)):
+            result[key] = _aggregate(scores)
+    return result
+
+
+def learning_curve(out: str | Path, cfg) -> list[dict[str, Any]]:
+    """The evaluation curve over seeds: at every evaluation step that all seeds reached, each summary
+    metric's IQM, 95 % stratified bootstrap CI, mean and per-seed values."""
+    evaluations = _seed_evaluations(Path(out), cfg)
+    steps = sorted(set.intersection(*(set(rows) for rows in evaluations))) if evaluations else []
+    curve = []
+    for step in steps:
+        rows = [by_step[step] for by_step in evaluations]
+        point = {"step": step, **_aggregate_metrics(rows, cfg.env)}
+        for key in point:
+            if key != "step":
+                point[key]["per_seed"] = [float(row[key]) for row in rows]
+        curve.append(point)
+    return curve
+
+
 def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
-    """Final evaluation of every seed and, over seeds, the IQM with its 95 % stratified bootstrap CI."""
+    """Final evaluation of every seed and, over seeds, the IQM with its 95 % stratified bootstrap CI;
+    ``curve`` holds the same statistics at every evaluation step (:func:`learning_curve`)."""
     out = Path(out)
-    finals: dict[int, dict] = {}
-    for seed in range(cfg.num_seeds):
-        rows = [
-            r for r in read_jsonl(out / "eval" / f"seed_{seed}.jsonl") if r.get("step") == cfg.total_steps
-        ]
-        if rows:
-            finals[seed] = rows[-1]
+    evaluations = _seed_evaluations(out, cfg)
+    finals = {seed: rows[cfg.total_steps] for seed, rows in enumerate(evaluations) if cfg.total_steps in rows}
     summary: dict[str, Any] = {
         "env": cfg.env,
         "algo": cfg.algo,
@@ -245,17 +281,9 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
         "per_seed": {
             str(s): {k: v for k, v in r.items() if k != "episode_returns"} for s, r in finals.items()
         },
-        "aggregate": {},
+        "aggregate": _aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
+        "curve": learning_curve(out, cfg),
     }
-    if finals:
-        for key, _ in summary_metrics(cfg.env):
-            scores = np.array([finals[s][key] for s in sorted(finals)], np.float64)
-            interval = stats.stratified_bootstrap_ci(scores, stats.iqm, confidence=0.95)
-            summary["aggregate"][key] = {
-                **interval.as_dict(),
-                "mean": float(scores.mean()),
-                "n": int(scores.size),
-            }
     return summary
 
 
@@ -272,6 +300,57 @@ def format_table(summary: dict[str, Any]) -> str:
     if not summary["aggregate"]:
         lines.append("(no final evaluation yet)")
     return "\n".join(lines)
+
+
+def _curve_label(label: str) -> str:
+    """'final return' -> 'return': a curve point is not final."""
+    return label.removeprefix("final ")
+
+
+def format_curve(summary: dict[str, Any], metrics: int = 2) -> str:
+    """The learning curve as a plain-text table: per evaluation step, IQM [95 % CI] of the first
+    ``metrics`` summary metrics."""
+    chosen = summary_metrics(summary["env"])[:metrics]
+    header = f"{'step':>10}" + "".join(f"  {_curve_label(label):>30}" for _, label in chosen)
+    lines = ["learning curve (IQM [95% CI] over seeds)", header]
+    for point in summary.get("curve", []):
+        cells = []
+        for key, _ in chosen:
+            agg = point.get(key)
+            cells.append(f"{agg['estimate']:.3f} [{agg['low']:.3f}, {agg['high']:.3f}]" if agg else "-")
+        lines.append(f"{point['step']:>10}" + "".join(f"  {cell:>30}" for cell in cells))
+    return "\n".join(lines)
+
+
+def plot_learning_curve(summary: dict[str, Any], path: str | Path, metrics: int = 2) -> Path:
+    """Save the learning curve (IQM line, 95 % CI band, thin per-seed lines) of the first ``metrics``
+    summary metrics as one PNG panel each; returns ``path``."""
+    from matplotlib.figure import Figure  # no pyplot: no GUI backend, safe in threads and on servers
+
+    chosen = summary_metrics(summary["env"])[:metrics]
+    curve = summary.get("curve", [])
+    figure = Figure(figsize=(4.2 * len(chosen), 3.2), layout="constrained")
+    axes = figure.subplots(1, len(chosen), squeeze=False)[0]
+    for ax, (key, label) in zip(axes, chosen, strict=True):
+        points = [p for p in curve if key in p]
+        steps = np.array([p["step"] for p in points])
+        if points:
+            per_seed = np.array([p[key]["per_seed"] for p in points])
+            ax.plot(steps, per_seed, color="0.75", linewidth=0.8)
+            ax.fill_between(
+                steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
+                color="tab:blue", alpha=0.25, linewidth=0, label="95 % CI",
+            )  # fmt: skip
+            ax.plot(steps, [p[key]["estimate"] for p in points], color="tab:blue", marker="o", label="IQM")
+            ax.legend(loc="best", fontsize="small")
+        ax.set_xlabel("environment steps per seed")
+        ax.set_title(_curve_label(label))
+        ax.grid(alpha=0.3)
+    seeds = max((p[key]["n"] for p in curve for key, _ in chosen if key in p), default=0)
+    figure.suptitle(f"{summary['env']} / {summary['algo']} ({summary['preset']}), {seeds} seeds")
+    path = Path(path)
+    figure.savefig(path, dpi=110)
+    return path
 
 
 def _git_commit(repo: Path) -> dict[str, Any]:

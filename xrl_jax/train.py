@@ -996,6 +996,7 @@ def run_paths(out: Path) -> dict[str, Path]:
         "eval": out / "eval",
         "checkpoints": out / "checkpoints",
         "summary": out / "summary.json",
+        "curve": out / "learning_curve.png",
         "timing": out / "timing.jsonl",
     }
 
@@ -1143,6 +1144,8 @@ def train(
     summary["timing_this_session"] = timing
     summary["memory_plan"] = {k: v for k, v in plan.items() if k != "groups"} | {"groups": len(groups)}
     write_atomic(paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    if summary["curve"]:
+        evaluate_mod.plot_learning_curve(summary, paths["curve"])
     return summary
 
 
