@@ -234,7 +234,7 @@ def _seed_evaluations(out: Path, cfg) -> list[dict[int, dict]]:
 
 
 def _aggregate(scores: np.ndarray) -> dict[str, Any]:
-    """IQM with its 95 % stratified bootstrap CI, the mean and the per-seed values."""
+    """IQM with its 95 % stratified bootstrap CI over seeds, the mean and the number of seeds."""
     interval = stats.stratified_bootstrap_ci(scores, stats.iqm, confidence=0.95)
     return {**interval.as_dict(), "mean": float(scores.mean()), "n": int(scores.size)}
 
