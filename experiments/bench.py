@@ -344,7 +344,9 @@ def main(argv: list[str] | None = None) -> int:
         "train", help="end-to-end training env-steps/s (updates included), compile, memory"
     )
     tr_parser.add_argument("--env", default="tracking", choices=["tracking", "country_road"])
-    tr_parser.add_argument("--algos", nargs="+", default=["xsac", "xdsac"])
+    tr_parser.add_argument(
+        "--algos", nargs="+", default=["xsac", "xdsac"], choices=["sac", "dsac", "xsac", "xdsac"]
+    )
     tr_parser.add_argument("--seeds", nargs="+", type=int, default=[1, 5, 20])
     tr_parser.add_argument(
         "--widths", nargs="+", type=int, default=[256, 64], help="actor/critic widths (paper: 256)"
