@@ -172,7 +172,7 @@ def test_warmup_then_one_update_per_transition(smoke_trainer):
 
 @pytest.mark.slow
 def test_quick_preset_learns_on_tracking(tmp_path):
-    """Two seeds of XDSAC, quick preset (~15-20 min on 2 CPU cores): the final evaluation on the 100
+    """Two seeds of XDSAC, quick preset (~13 min on 2 CPU cores): the final evaluation on the 100
     fixed tracks beats the first one (at 5k steps) clearly, for the IQM over seeds."""
     from xrl_jax.evaluate import read_jsonl
 
@@ -181,6 +181,6 @@ def test_quick_preset_learns_on_tracking(tmp_path):
     assert summary["complete"]
     first = np.mean([read_jsonl(tmp_path / "eval" / f"seed_{s}.jsonl")[0]["avg_return"] for s in range(2)])
     final = summary["aggregate"]["avg_return"]["estimate"]
-    # Measured (seeds 0-1): first evaluation 1.0, final IQM 14.9 [14.6, 15.2]; still far from the
-    # hand-written controller's 36.5, so this only checks that learning clearly happens.
+    # Measured (seeds 0-1 of a 4-seed run): first evaluation 2.6, final 12.4 and 26.8 (seed 0 was at
+    # 37.4 at 45k steps): evaluations swing between checkpoints, so this only checks clear learning.
     assert final > first + 5.0, (first, final)
