@@ -211,7 +211,7 @@ def _preset_train_fields(preset: str, env: str, algo: str) -> dict[str, Any]:
     if preset == "quick":  # ~13 min on a 2-core CPU for two seeds of Tracking XDSAC
         return {
             "total_steps": 50_000,
-            "buffer_size": 50_000,
+            "buffer_size": 30_000,  # FIFO: the latest 30k transitions (as measured in the README)
             "batch_size": 128,
             "log_interval": 1_000,
             "eval_interval": 5_000,
