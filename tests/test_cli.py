@@ -11,8 +11,6 @@ from train_support import prepare_cache
 
 from xrl_jax import train as train_mod
 
-# One worker under `pytest -n` with tests/test_train.py's smoke-trainer tests: one compilation.
-pytestmark = pytest.mark.xdist_group("tracking_xdsac_smoke")
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ["--env", "tracking", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet"]
 

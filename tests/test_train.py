@@ -121,10 +121,6 @@ def test_empty_window_reports_nan():
 # ---------------------------------------------------------------------------------------------
 
 
-# Same worker as tests/test_cli.py under `pytest -n`: the Tracking XDSAC smoke trainer compiles once.
-SMOKE_TRAINER_GROUP = pytest.mark.xdist_group("tracking_xdsac_smoke")
-
-
 @pytest.fixture(scope="module")
 def smoke_trainer(tmp_path_factory):
     prepare_cache(tmp_path_factory.mktemp("cache"))
@@ -132,7 +128,6 @@ def smoke_trainer(tmp_path_factory):
     return cfg, T.get_trainer(cfg)
 
 
-@SMOKE_TRAINER_GROUP
 def test_memory_plan_groups_seeds_or_refuses(smoke_trainer):
     cfg, trainer = smoke_trainer
     sizes = T.estimate_seed_bytes(trainer)
@@ -152,7 +147,6 @@ def test_memory_plan_groups_seeds_or_refuses(smoke_trainer):
         T.plan_memory(trainer, five, budget_bytes=sizes["total"] // 2)
 
 
-@SMOKE_TRAINER_GROUP
 def test_warmup_then_one_update_per_transition(smoke_trainer):
     cfg, trainer = smoke_trainer
     state = trainer.init(jnp.int32(0), jnp.arange(2, dtype=jnp.int32))
