@@ -252,12 +252,15 @@ def _aggregate_metrics(rows: list[dict], env: str) -> dict[str, Any]:
 def learning_curve(out: str | Path, cfg) -> list[dict[str, Any]]:
     """The evaluation curve over seeds: at every evaluation step that all seeds reached, each summary
     metric's IQM, 95 % stratified bootstrap CI, mean and per-seed values."""
-    evaluations = _seed_evaluations(Path(out), cfg)
+    return _curve(_seed_evaluations(Path(out), cfg), cfg.env)
+
+
+def _curve(evaluations: list[dict[int, dict]], env: str) -> list[dict[str, Any]]:
     steps = sorted(set.intersection(*(set(rows) for rows in evaluations))) if evaluations else []
     curve = []
     for step in steps:
         rows = [by_step[step] for by_step in evaluations]
-        point = {"step": step, **_aggregate_metrics(rows, cfg.env)}
+        point = {"step": step, **_aggregate_metrics(rows, env)}
         for key in point:
             if key != "step":
                 point[key]["per_seed"] = [float(row[key]) for row in rows]
@@ -282,7 +285,7 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
             str(s): {k: v for k, v in r.items() if k != "episode_returns"} for s, r in finals.items()
         },
         "aggregate": _aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
-        "curve": learning_curve(out, cfg),
+        "curve": _curve(evaluations, cfg.env),
     }
     return summary
 
