@@ -27,6 +27,13 @@ def test_presets_resolve_with_the_spec_values():
     quick = resolve_config("tracking", "xdsac", "quick", num_seeds=4)
     assert quick.total_steps < paper.total_steps and quick.agent.actor_width == 64 and quick.num_seeds == 4
     assert (quick.agent.init_alpha, quick.agent.alpha_lr, quick.agent.gamma) == (0.005, 1e-3, 0.98)
+    assert quick.buffer_size == quick.total_steps  # the quick buffer keeps every transition...
+    assert resolve_config("tracking", "xsac", "quick", total_steps=80_000).buffer_size == 80_000
+    longer = resolve_config("country_road", "sac", "quick", overrides={"total_steps": "70000"})
+    assert longer.buffer_size == 70_000
+    assert resolve_config("tracking", "xsac", "quick", total_steps=100).buffer_size == 128  # >= batch
+    chosen = resolve_config("tracking", "xsac", "quick", overrides={"buffer_size": "20000"})
+    assert chosen.buffer_size == 20_000  # ...unless the user sets its size
     ix = resolve_config("intersection", "xdsac", "quick").agent  # keeps the paper's fixed α = 0.015
     assert (ix.init_alpha, ix.auto_alpha, ix.gamma) == (0.015, False, 0.95)
     smoke = resolve_config("country_road", "sac", "smoke", total_steps=128)
@@ -172,7 +179,7 @@ def test_warmup_then_one_update_per_transition(smoke_trainer):
 
 @pytest.mark.slow
 def test_quick_preset_learns_on_tracking(tmp_path):
-    """Two seeds of XDSAC, quick preset (~13 min on 2 CPU cores, estimated): the final evaluation on the 100
+    """Two seeds of XDSAC, quick preset (~15 min on 2 CPU cores, estimated): the final evaluation on the 100
     fixed tracks beats the first one (at 5k steps) clearly, for the IQM over seeds."""
     from xrl_jax.evaluate import read_jsonl
 
