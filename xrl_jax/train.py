@@ -210,8 +210,7 @@ def _preset_train_fields(preset: str, env: str, algo: str) -> dict[str, Any]:
         return {}
     if preset == "quick":  # two Tracking XDSAC seeds: ~15 min on a 2-core CPU (estimated)
         return {
-            "total_steps": 60_000,
-            "buffer_size": 60_000,  # follows total_steps (see resolve_config): every transition is kept
+            "total_steps": 60_000,  # buffer_size follows total_steps (resolve_config): every transition kept
             "batch_size": 128,
             "log_interval": 1_000,
             "eval_interval": 5_000,
