@@ -54,7 +54,8 @@ presets:
 --set KEY=VALUE accepts any TrainConfig field (num_envs, warmup_steps, batch_size, buffer_size,
   log_interval, eval_interval, eval_episodes, checkpoint_interval, train_tracks, track_seed,
   eval_track_seed, seed, reinit_steps, max_group_size, memory_budget_gb) or any agent field (actor_lr,
-  critic_lr, gamma, tau, kappa, target_entropy, actor_width, critic_depth, truncation, ...;
+  critic_lr, gamma, tau, kappa, target_entropy, actor_width, critic_depth, truncation,
+  lr_decay_updates = linear decay of the learning rates to zero over that many updates, ...;
   'agent.' prefix optional). Unknown keys fail with the list of allowed ones.
 
 results folder:

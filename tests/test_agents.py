@@ -194,6 +194,36 @@ def test_update_follows_the_order_of_section_1_5(algo):
     assert any(differs)
 
 
+def test_learning_rate_decay_scales_every_step_linearly():
+    """With ``lr_decay_updates=4`` the update at step 3 is the constant-rate update at a quarter of
+    every learning rate, and from step 4 on actor, critic and log α stop moving. (The schedule is
+    the same code for every agent; one suffices.)"""
+    algo = "xdsac"
+    decaying = make_agent(tiny_config(algo, lr_decay_updates=4), EXAMPLE, NUM_ACTIONS[algo])
+    quarter = make_agent(
+        tiny_config(algo, actor_lr=2.5e-3, critic_lr=2.5e-3), EXAMPLE, NUM_ACTIONS[algo]
+    )  # alpha_lr follows critic_lr
+    state = decaying.init(jax.random.PRNGKey(3))
+    batch, key = make_batch(jax.random.PRNGKey(4), algo), jax.random.PRNGKey(5)
+    before = (state.actor_params, state.critic_params, state.log_alpha)
+
+    def learned(agent, steps, hparams):
+        starts = jax.vmap(lambda s: state.replace(step=s, hparams=hparams))(jnp.asarray(steps, jnp.int32))
+        new = jax.jit(jax.vmap(agent.update, in_axes=(None, 0, None)))(key, starts, batch)[0]
+        return [
+            jax.tree.map(lambda x, i=i: x[i], (new.actor_params, new.critic_params, new.log_alpha))
+            for i in range(len(steps))
+        ]
+
+    [at_quarter] = learned(quarter, [3], quarter.init(jax.random.PRNGKey(3)).hparams)
+    at_3, at_4, at_9 = learned(decaying, [3, 4, 9], state.hparams)
+    leaves_close(at_3, at_quarter, rtol=1e-5, atol=1e-7)
+    moved = jax.tree.map(lambda a, b: np.abs(a - b).max(), at_quarter, before)
+    assert max(jax.tree_util.tree_leaves(moved)) > 1e-3
+    leaves_close(at_4, before, rtol=0, atol=0)
+    leaves_close(at_9, before, rtol=0, atol=0)
+
+
 @pytest.fixture(scope="module")
 def xsac_agent():
     agent = make_agent(tiny_config("xsac"), EXAMPLE, 2)

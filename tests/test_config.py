@@ -96,6 +96,8 @@ def test_smoke_preset_is_tiny_with_paper_optimisation():
         ({"algo": "xsac", "neutral_object": 1}, "neutral_object must be a bool"),
         ({"fe_item_depth": 0}, "fe_item_depth must be a positive integer"),
         ({"fe_set_depth": 0}, "fe_set_depth must be a positive integer"),
+        ({"lr_decay_updates": -1}, "lr_decay_updates must be a non-negative integer"),
+        ({"lr_decay_updates": 2.5}, "lr_decay_updates must be a non-negative integer"),
     ],
 )
 def test_validation_errors_are_clear(changes, message):

@@ -392,6 +392,18 @@ class Agent:
         return loss, aux
 
     # ---- one train step ---------------------------------------------------------------------
+    def _scheduled_hparams(self, state: AgentState) -> HyperParams:
+        """The hyper-parameters of this update: with ``lr_decay_updates`` > 0, the three learning
+        rates fall linearly from their set values (update 0) to zero (update ``lr_decay_updates``)."""
+        hp = state.hparams
+        decay = self.config.lr_decay_updates
+        if not decay:
+            return hp
+        scale = jnp.clip(1.0 - state.step / decay, 0.0, 1.0).astype(hp.actor_lr.dtype)
+        return hp.replace(
+            actor_lr=hp.actor_lr * scale, critic_lr=hp.critic_lr * scale, alpha_lr=hp.alpha_lr * scale
+        )
+
     def update(
         self, key: Array, state: AgentState, batch: Mapping[str, Any]
     ) -> tuple[AgentState, dict[str, Array]]:
@@ -402,7 +414,7 @@ class Agent:
         4. α Adam step from step 3's entropy estimates (auto-α only); 5. Polyak from the new critic.
         """
         self.check_batch(batch)
-        hp = state.hparams
+        hp = self._scheduled_hparams(state)
         target_key, actor_key = jax.random.split(key)
 
         (critic_loss, critic_aux), critic_grads = jax.value_and_grad(self.critic_loss, has_aux=True)(

@@ -39,7 +39,7 @@ class AgentConfig:
 
     Static (shape / control flow): algo, widths, depths, extractor choice, number of critics,
     components per object, branch depth, log σ bounds, loss kind, clipping, exploration ε,
-    auto-α switch, truncation handling. Traced: see :data:`TRACED_FIELDS`.
+    auto-α switch, truncation handling, learning-rate decay length. Traced: see :data:`TRACED_FIELDS`.
     """
 
     algo: str = "sac"
@@ -70,6 +70,9 @@ class AgentConfig:
     auto_alpha: bool = True
     epsilon_random: float | None = None  # None = 0.05 for discrete agents, 0 for continuous (§5.1)
     truncation: str = "drop"  # how the loss treats `truncated` transitions (see agents.py)
+    # Linear decay of every learning rate to zero over this many updates (0 = constant, as the paper).
+    # Not in the spec: it calms the late-run swings of the greedy policy in short runs.
+    lr_decay_updates: int = 0
     # --- optimisation (traced) ---
     actor_lr: float = 1e-4
     critic_lr: float = 1e-4
@@ -153,6 +156,9 @@ def _validate(cfg: AgentConfig) -> None:
         raise _error(f"n_critics must be a positive integer, got {cfg.n_critics!r}")
     if not isinstance(cfg.components_per_object, int) or cfg.components_per_object < 1:
         raise _error(f"components_per_object must be a positive integer, got {cfg.components_per_object!r}")
+    decay = cfg.lr_decay_updates
+    if not isinstance(decay, int) or isinstance(decay, bool) or decay < 0:
+        raise _error(f"lr_decay_updates must be a non-negative integer, got {cfg.lr_decay_updates!r}")
     if not isinstance(cfg.pe_freqs, int) or cfg.pe_freqs < 0:
         raise _error(f"pe_freqs must be a non-negative integer, got {cfg.pe_freqs!r}")
     if cfg.weight_depth is not None and not 1 <= cfg.weight_depth <= cfg.actor_depth:
