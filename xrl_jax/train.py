@@ -312,13 +312,11 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, str]:
 
 
 def _parse_train_value(name: str, text: str) -> Any:
-    default = getattr(TrainConfig, name, None)
+    """Parse ``--set`` text with the type of the field's default (TrainConfig has int, float and
+    str fields only)."""
     field = {f.name: f for f in dataclasses.fields(TrainConfig)}[name]
     kind = type(field.default) if field.default is not dataclasses.MISSING else str
-    del default
     try:
-        if kind is bool:
-            return text.lower() in ("1", "true", "yes", "on")
         if kind is int:
             value = float(text)
             if value != int(value):
