@@ -378,19 +378,20 @@ def resolve_config(
             raise ConfigError(f"unknown setting {key!r}; allowed: {allowed}")
     if "algo" in agent_changes:
         raise ConfigError("'algo' cannot be changed with --set; use --algo")
-    if preset == "quick" and env != "intersection" and "buffer_size" not in train_changes:
-        # Keep every transition, as the paper's protocol does (buffer = steps = 10⁶). On 4 Tracking XDSAC
-        # seeds the evaluation IQM at 50k steps was 27.0 with a FIFO of the latest 30k transitions and
-        # 36.0 with all of them (README, Results).
-        fields["buffer_size"] = max(fields["total_steps"], fields["batch_size"])
     try:
         agent = agent_config_mod.apply_overrides(_preset_agent(preset, env, algo), agent_changes)
     except ValueError as err:
         raise ConfigError(str(err)) from None
-    if preset == "quick" and env != "intersection" and "lr_decay_updates" not in agent_changes:
-        # The learning rates reach zero at the last update (one update per transition after warm-up).
-        updates = fields["total_steps"] - fields.get("warmup_steps", TrainConfig.warmup_steps)
-        agent = agent.replace(lr_decay_updates=max(updates, 1))
+    if preset == "quick" and env != "intersection":  # settings that follow the run's length
+        if "buffer_size" not in train_changes:
+            # Keep every transition, as the paper's protocol does (buffer = steps = 10⁶). On 4 Tracking
+            # XDSAC seeds the evaluation IQM at 50k steps was 27.0 with a FIFO of the latest 30k
+            # transitions and 36.0 with all of them (README, Results).
+            fields["buffer_size"] = max(fields["total_steps"], fields["batch_size"])
+        if "lr_decay_updates" not in agent_changes:
+            # The learning rates reach zero at the last update (one update per transition after warm-up).
+            updates = fields["total_steps"] - fields.get("warmup_steps", TrainConfig.warmup_steps)
+            agent = agent.replace(lr_decay_updates=max(updates, 1))
     try:
         return TrainConfig(agent=agent, **fields)
     except ConfigError:
