@@ -29,7 +29,9 @@ changes nothing. With ``"bootstrap"`` they are kept and bootstrapped (needs the 
 ``next_obs``, not an auto-reset observation).
 
 Traced hyper-parameters (learning rates, γ, τ, κ, target entropy) live in ``AgentState.hparams``
-so that a sweep can vmap over them; network sizes and switches are static (the config).
+so that a sweep can vmap over them; network sizes and switches are static (the config). With
+``config.lr_decay_updates`` > 0 each update scales the three learning rates by the fraction of the
+decay still ahead (from ``AgentState.step``), so a resumed run keeps the same schedule.
 
 Deviations from textbook SAC that the reference makes and this module follows (spec §7.2):
 Huber critic loss; discrete actor on the *mean* of the critics, discrete target on the
