@@ -281,8 +281,8 @@ def _intersection_train_fields(preset: str) -> dict[str, Any]:
 # uniform; over the paper's 10⁶ steps that start-up phase does not matter, over 50k it is everything.
 # Actor and critic start at 6e-4 and decay linearly to zero over the run (``lr_decay_updates``, set in
 # resolve_config): with a constant 3e-4 the greedy evaluation policy swung by ±15 between the last
-# evaluations (Tracking XDSAC seeds 0-3, final IQM 24.1); with the decay the last evaluations change
-# less and the final IQM was 31.8 (seeds 0-3) and 41.5 (seeds 4-7) (README, Results).
+# evaluations (4 Tracking XDSAC seeds, final IQM 24.1); with the decay the last evaluations change
+# less and the final IQM was 31.8 on the same seeds, 38.5 over 12 seeds (README, Results).
 QUICK_RACING_OPTIMISATION = {
     "init_alpha": 0.005,
     "alpha_lr": 1e-3,
