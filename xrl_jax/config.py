@@ -71,7 +71,7 @@ class AgentConfig:
     epsilon_random: float | None = None  # None = 0.05 for discrete agents, 0 for continuous (§5.1)
     truncation: str = "drop"  # how the loss treats `truncated` transitions (see agents.py)
     # Linear decay of every learning rate to zero over this many updates (0 = constant, as the paper).
-    # Not in the spec: it calms the late-run swings of the greedy policy in short runs.
+    # Not in the spec; the quick preset uses it (README, Results, for what it changed there).
     lr_decay_updates: int = 0
     # --- optimisation (traced) ---
     actor_lr: float = 1e-4

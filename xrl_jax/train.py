@@ -282,7 +282,8 @@ def _intersection_train_fields(preset: str) -> dict[str, Any]:
 # Actor and critic start at 6e-4 and decay linearly to zero over the run (``lr_decay_updates``, set in
 # resolve_config): with a constant 3e-4 the greedy evaluation policy swung by ±15 between the last
 # evaluations (4 Tracking XDSAC seeds, final IQM 24.1); with the decay the last evaluations change
-# less and the final IQM was 31.8 on the same seeds, 38.5 over 12 seeds (README, Results).
+# less and the final IQM was 31.8 on the same seeds, 38.5 over 12 seeds and 35.2 over 14 runs
+# (README, Results).
 QUICK_RACING_OPTIMISATION = {
     "init_alpha": 0.005,
     "alpha_lr": 1e-3,
