@@ -28,7 +28,7 @@ def test_presets_resolve_with_the_spec_values():
     assert quick.total_steps < paper.total_steps and quick.agent.actor_width == 64 and quick.num_seeds == 4
     assert (quick.agent.init_alpha, quick.agent.alpha_lr, quick.agent.gamma) == (0.005, 1e-3, 0.98)
     assert quick.buffer_size == quick.total_steps  # the quick buffer keeps every transition...
-    assert resolve_config("tracking", "xsac", "quick", total_steps=80_000).buffer_size == 80_000
+    assert resolve_config("tracking", "xsac", "quick", total_steps=100_000).buffer_size == 100_000
     longer = resolve_config("country_road", "sac", "quick", overrides={"total_steps": "70000"})
     assert longer.buffer_size == 70_000
     assert resolve_config("tracking", "xsac", "quick", total_steps=100).buffer_size == 128  # >= batch
@@ -36,7 +36,7 @@ def test_presets_resolve_with_the_spec_values():
     assert chosen.buffer_size == 20_000  # ...unless the user sets its size
     # the quick learning rates decay to zero at the last update (one per transition after warm-up)
     assert (quick.agent.actor_lr, quick.agent.critic_lr) == (6e-4, 6e-4)
-    assert quick.agent.lr_decay_updates == quick.total_steps - quick.warmup_steps == 59_000
+    assert quick.agent.lr_decay_updates == quick.total_steps - quick.warmup_steps == 79_000
     assert longer.agent.lr_decay_updates == 70_000 - longer.warmup_steps
     constant = resolve_config("tracking", "xsac", "quick", overrides={"lr_decay_updates": "0"})
     assert constant.agent.lr_decay_updates == 0

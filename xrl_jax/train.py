@@ -208,9 +208,9 @@ def _preset_train_fields(preset: str, env: str, algo: str) -> dict[str, Any]:
         return _intersection_train_fields(preset)
     if preset == "paper":  # spec §5.7: 1e6 steps, buffer 1e6, eval every 1e5 on 100 episodes
         return {}
-    if preset == "quick":  # two Tracking XDSAC seeds: ~15 min on a 2-core CPU (estimated)
+    if preset == "quick":  # two Tracking XDSAC seeds: ~15 min on a 2-core CPU
         return {
-            "total_steps": 60_000,  # buffer_size follows total_steps (resolve_config): every transition kept
+            "total_steps": 80_000,  # buffer_size follows total_steps (resolve_config): every transition kept
             "batch_size": 128,
             "log_interval": 1_000,
             "eval_interval": 5_000,
