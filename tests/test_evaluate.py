@@ -11,6 +11,7 @@ from train_support import prepare_cache
 from xrl_jax import stats
 from xrl_jax.evaluate import (
     format_curve,
+    format_step_axis,
     format_table,
     learning_curve,
     make_evaluate,
@@ -127,6 +128,22 @@ def test_learning_curve_aggregates_every_step_all_seeds_reached(tmp_path):
     assert "2.500 [" in text and "6.500 [" in text and "early-termination rate" in text
     png = plot_learning_curve(summary, tmp_path / "curve.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize(
+    ("last_step", "expected"),
+    [(80_000, ["0", "20k", "40k", "60k", "80k"]), (1_000_000, ["0", "200k", "400k", "600k", "800k", "1M"])],
+)
+def test_learning_curve_step_ticks_are_short(last_step, expected):
+    from matplotlib.figure import Figure
+
+    ax = Figure().subplots()
+    ax.plot([0, last_step], [0.0, 1.0])
+    ax.set_xlim(0, last_step)
+    format_step_axis(ax)
+    ax.figure.canvas.draw()
+    labels = [t.get_text() for t in ax.get_xticklabels() if 0 <= t.get_position()[0] <= last_step]
+    assert labels == expected
 
 
 def test_summary_of_an_unfinished_run_is_marked_incomplete(tmp_path):

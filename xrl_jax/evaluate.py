@@ -347,6 +347,7 @@ def plot_learning_curve(summary: dict[str, Any], path: str | Path, metrics: int 
             ax.plot(steps, [p[key]["estimate"] for p in points], color="tab:blue", marker="o", label="IQM")
             ax.legend(loc="best", fontsize="small")
         ax.set_xlabel("environment steps per seed")
+        format_step_axis(ax)
         ax.set_title(_curve_label(label))
         ax.grid(alpha=0.3)
     seeds = max((p[key]["n"] for p in curve for key, _ in chosen if key in p), default=0)
@@ -354,6 +355,14 @@ def plot_learning_curve(summary: dict[str, Any], path: str | Path, metrics: int 
     path = Path(path)
     figure.savefig(path, dpi=110)
     return path
+
+
+def format_step_axis(ax: Any) -> None:
+    """Step ticks as 20k, 1M: written out in full they run into each other beyond ~50k steps."""
+    from matplotlib.ticker import EngFormatter, MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10], integer=True))
+    ax.xaxis.set_major_formatter(EngFormatter(sep=""))
 
 
 def _git_commit(repo: Path) -> dict[str, Any]:
