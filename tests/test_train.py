@@ -187,7 +187,7 @@ def test_warmup_then_one_update_per_transition(smoke_trainer):
 
 @pytest.mark.slow
 def test_quick_preset_learns_on_tracking(tmp_path):
-    """Two seeds of XDSAC, quick preset (11 min on 2 CPU cores, measured): the final evaluation on the 100
+    """Two seeds of XDSAC, quick preset (14 min on 2 CPU cores, measured): the final evaluation on the 100
     fixed tracks beats the first one (at 5k steps) clearly, for the IQM over seeds."""
     from xrl_jax.evaluate import read_jsonl
 
@@ -196,6 +196,6 @@ def test_quick_preset_learns_on_tracking(tmp_path):
     assert summary["complete"]
     first = np.mean([read_jsonl(tmp_path / "eval" / f"seed_{s}.jsonl")[0]["avg_return"] for s in range(2)])
     final = summary["aggregate"]["avg_return"]["estimate"]
-    # Measured (seeds 0-1 of a 4-seed run): first evaluation 4.1 and 1.5, final 36.6 and 35.6; seed 2
-    # of that run ended at 12.3, so this only checks clear learning.
+    # Measured (the README's quick start): first evaluation 4.0 and 1.4, final 20.7 and 55.5; single
+    # seeds have ended anywhere from 16 to 65, so this only checks clear learning.
     assert final > first + 5.0, (first, final)

@@ -208,7 +208,7 @@ def _preset_train_fields(preset: str, env: str, algo: str) -> dict[str, Any]:
         return _intersection_train_fields(preset)
     if preset == "paper":  # spec §5.7: 1e6 steps, buffer 1e6, eval every 1e5 on 100 episodes
         return {}
-    if preset == "quick":  # two Tracking XDSAC seeds: ~15 min on a 2-core CPU
+    if preset == "quick":  # two Tracking XDSAC seeds: 14 min on a 2-core CPU (measured)
         return {
             "total_steps": 80_000,  # buffer_size follows total_steps (resolve_config): every transition kept
             "batch_size": 128,
@@ -282,8 +282,8 @@ def _intersection_train_fields(preset: str) -> dict[str, Any]:
 # Actor and critic start at 6e-4 and decay linearly to zero over the run (``lr_decay_updates``, set in
 # resolve_config): with a constant 3e-4 the greedy evaluation policy swung by ±15 between the last
 # evaluations (4 Tracking XDSAC seeds, final IQM 24.1); with the decay the last evaluations change
-# less and the final IQM was 31.8 on the same seeds, 38.5 over 12 seeds and 35.2 over 14 runs
-# (README, Results).
+# less and the final IQM was 31.8 on the same seeds (60k steps); with 80k steps it is 38.3 over 14
+# runs (README, Results).
 QUICK_RACING_OPTIMISATION = {
     "init_alpha": 0.005,
     "alpha_lr": 1e-3,
