@@ -4,9 +4,10 @@
     python experiments/costs.py --json     # the same numbers as JSON
 
 FLOPs are XLA's own count (``cost_analysis`` of the compiled acting function, 100 present cones), and
-an analytic dense-layer count beside it. The mixture actor acts through the fast path (spec §3.7): layers
-up to the weight-branch depth φ_d run for every object, the rest of the trunk and the heads for the one
-sampled object only — which is why φ_d = 1 is ~27× cheaper than φ_d = 3.
+an analytic dense-layer count beside it. The mixture actor acts through the fast path
+(docs/algorithms.md §3.7): layers up to the weight-branch depth φ_d run for every object, the rest of
+the trunk and the heads for the one sampled object only — which is why φ_d = 1 is ~27× cheaper than
+φ_d = 3.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ methods, all jittable and vmappable over a leading seed axis of the state:
 
 * ``init(key, obs_example=None) -> AgentState``
 * ``act(key, state, obs, mode="train") -> action`` (``mode`` is static: "train", "eval", "deterministic")
-* ``update(key, state, batch) -> (state, metrics)``: one train step in the order of spec §1.5
+* ``update(key, state, batch) -> (state, metrics)``: one train step in the order of docs/algorithms.md §1.5
 * ``policy(actor_params, obs)``: the action distribution (a ``distributions`` mixture), i.e. the
   explanation for the X agents.
 
@@ -33,7 +33,7 @@ so that a sweep can vmap over them; network sizes and switches are static (the c
 ``config.lr_decay_updates`` > 0 each update scales the three learning rates by the fraction of the
 decay still ahead (from ``AgentState.step``), so a resumed run keeps the same schedule.
 
-Deviations from textbook SAC that the reference makes and this module follows (spec §7.2):
+Deviations from textbook SAC that the reference makes and this module follows (§7.2):
 Huber critic loss; discrete actor on the *mean* of the critics, discrete target on the
 per-action *minimum*; XSAC actor samples every component and evaluates each sample under the
 full mixture; κ·H(w) subtracted; α learned on log α with Adam at the critic lr from α₀ = 0.1,
@@ -409,7 +409,7 @@ class Agent:
     def update(
         self, key: Array, state: AgentState, batch: Mapping[str, Any]
     ) -> tuple[AgentState, dict[str, Array]]:
-        """One gradient step in the order of spec §1.5 (§7.2.7):
+        """One gradient step in the order of §1.5 (§7.2.7):
 
         1. TD target with the pre-update actor, target critics and pre-update α;
         2. critic Adam step; 3. actor Adam step against the **updated** critic, pre-update α;
@@ -518,7 +518,7 @@ def make_agent(config: AgentConfig, obs_example: Mapping[str, Any], action_size:
     obs_shape = observation_shape(obs_example)
     networks = make_networks(_network_config(config, obs_shape, action_size))
     log_std_range = (config.resolved_log_std_min(), config.log_std_max)
-    if config.algo in ("sac", "xsac"):  # the networks default to the spec ranges; honour overrides
+    if config.algo in ("sac", "xsac"):  # the networks default to the ranges of §2.1 / §2.3; honour overrides
         networks = dataclasses.replace(networks, actor=networks.actor.clone(log_std_range=log_std_range))
     return Agent(config=config, networks=networks, obs_shape=obs_shape, action_size=action_size)
 

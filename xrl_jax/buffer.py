@@ -9,7 +9,7 @@ lossless measures bring it under 20 GB:
    ``i``, env ``e`` is the observation of row ``i + 1``, env ``e``. At an episode end that row holds
    the reset observation instead of the final one: harmless for a *terminated* transition (its
    bootstrap is masked) and wrong for a *truncated* one, which is why truncated transitions are
-   marked invalid and never sampled — exactly the reference's "drop truncated" rule (spec §5.3).
+   marked invalid and never sampled — exactly the reference's "drop truncated" rule (docs/algorithms.md §5.3).
    ``layout="explicit"`` stores ``next_obs`` separately (twice the observation memory) so that
    truncated transitions can be kept and bootstrapped from their true final observation.
 2. **One-hot set columns are stored as one integer code** (:class:`SetCodec`): a cone row

@@ -1,4 +1,4 @@
-"""Typed agent configurations and the paper presets (spec/algorithms.md §5.7).
+"""Typed agent configurations and the paper presets (docs/algorithms.md §5.7).
 
 An :class:`AgentConfig` holds everything an agent needs: architecture sizes and switches (static:
 they fix shapes and control flow) and optimisation constants (traced: copied into the agent state
@@ -58,7 +58,7 @@ class AgentConfig:
     duelling: bool = True  # discrete critics only; XDSAC always duelling (§2.4)
     components_per_object: int = 1  # C; X agents only
     # X agents only: prepend an always-present all-zero "neutral" object (a state-only component), as the
-    # multi-agent intersection actors do (spec Appendix A); the explanation then has O + 1 objects.
+    # multi-agent intersection actors do (Appendix A); the explanation then has O + 1 objects.
     neutral_object: bool = False
     weight_depth: int | None = None  # φ_d (paper Table I): 1-based hidden layer feeding φ; None = last
     uniform_mixture: bool = False  # ablation of §3.1.6: no φ, uniform weights over present objects
@@ -71,7 +71,7 @@ class AgentConfig:
     epsilon_random: float | None = None  # None = 0.05 for discrete agents, 0 for continuous (§5.1)
     truncation: str = "drop"  # how the loss treats `truncated` transitions (see agents.py)
     # Linear decay of every learning rate to zero over this many updates (0 = constant, as the paper).
-    # Not in the spec; the quick preset uses it (README, Results, for what it changed there).
+    # Not in the paper configs (§5.7); the quick preset uses it (README, Results, for what it changed there).
     lr_decay_updates: int = 0
     # --- optimisation (traced) ---
     actor_lr: float = 1e-4
@@ -172,7 +172,9 @@ def _validate(cfg: AgentConfig) -> None:
             f"neutral_object only applies to the mixture actors (xsac, xdsac); {cfg.algo} has no object slots"
         )
     if cfg.algo == "xdsac" and not cfg.duelling:
-        raise _error("XDSAC always uses a duelling critic (spec §2.4); duelling=False is only for DSAC")
+        raise _error(
+            "XDSAC always uses a duelling critic (docs/algorithms.md §2.4); duelling=False is only for DSAC"
+        )
     for name in ("actor_lr", "critic_lr"):
         _check_finite(name, getattr(cfg, name), positive=True)
     if cfg.alpha_lr is not None:
@@ -212,7 +214,8 @@ def _check_finite(name: str, value: Any, positive: bool = False) -> None:
 
 def _paper(env: str, algo: str) -> AgentConfig:
     """The resolved configs of §5.7 / §4.7 (country_road = the paper's racing) and, for the multi-agent
-    intersection, the released marl configs (carenv-intersection.md §8.7, algorithms.md Appendix A)."""
+    intersection, the released marl configs (docs/carenv-intersection.md §8.7,
+    docs/algorithms.md Appendix A)."""
     if env == "intersection":
         return _paper_intersection(algo)
     racing = env == "country_road"
@@ -243,18 +246,18 @@ def _paper(env: str, algo: str) -> AgentConfig:
     )
 
 
-# Intersection entropy coefficient: fixed for all four agents (carenv-intersection.md §8.7).
+# Intersection entropy coefficient: fixed for all four agents (docs/carenv-intersection.md §8.7).
 INTERSECTION_ALPHA = 0.015
 
 
 def _paper_intersection(algo: str) -> AgentConfig:
-    """Multi-agent intersection (carenv-intersection.md §8.7).
+    """Multi-agent intersection (docs/carenv-intersection.md §8.7).
 
     Fixed α = 0.015 (no α learning, so the target entropy is unused); lr 3e-4 (DSAC 1e-4); global-norm
     clip 10 for DSAC / XDSAC / XSAC and none for SAC; X actors 3 × 256 per object with the neutral object;
     critics 2 × 256 (duelling for the discrete ones) on a Deep Set of width 256 without Fourier features
     (item encoder 3 layers, set encoder 2) ⊕ Dense(256) of the state. The baseline actors' MLP depth is
-    not given by the spec; they use the critics' 2 × 256 on their own copy of that extractor.
+    not given there; they use the critics' 2 × 256 on their own copy of that extractor.
     """
     is_x = algo in MIXTURE_ALGOS
     lr = 1e-4 if algo == "dsac" else 3e-4

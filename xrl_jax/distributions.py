@@ -1,5 +1,5 @@
 """Mixture policies over objects: categorical mixture (paper eq. 3) and squashed diagonal
-Gaussian mixture (paper eq. 6-7), spec ``algorithms.md`` §3.
+Gaussian mixture (paper eq. 6-7), docs/algorithms.md §3.
 
 Both distributions are ``flax.struct`` dataclasses (pytrees), so they can be built inside a
 jitted function, returned from it, vmapped and scanned. Every array has arbitrary leading batch
@@ -15,7 +15,7 @@ reference's Jacobian ``Σ_d log(1 - a_d² + 1e-6)`` (SB3 epsilon), not the exact
 Masking: absent slots get exactly zero weight and exactly zero gradient, whatever their logits
 or parameters (absent parameters are replaced by harmless constants before use, so 0·value
 never meets an inf/NaN). A sample without any present slot falls back to uniform weights over
-all slots (spec §3.1.4).
+all slots (§3.1.4).
 
 Usage::
 
@@ -44,11 +44,11 @@ from flax import struct
 Array = jax.Array
 
 LOG_STD_BOUNDS = (-5.0, 2.0)
-"""log σ clip of the mixture policies (spec §2.3; σ ≥ e^-5 keeps the densities well-conditioned)."""
+"""log σ clip of the mixture policies (§2.3; σ ≥ e^-5 keeps the densities well-conditioned)."""
 SAC_LOG_STD_BOUNDS = (-20.0, 2.0)
-"""log σ clip of the baseline SAC actor (SB3 limits, spec §2.1)."""
+"""log σ clip of the baseline SAC actor (SB3 limits, §2.1)."""
 TANH_JACOBIAN_EPS = 1e-6
-"""ε in the reference's squash correction Σ_d log(1 - a_d² + ε) (spec §3.2, §7.3)."""
+"""ε in the reference's squash correction Σ_d log(1 - a_d² + ε) (§3.2, §7.3)."""
 PROB_FLOOR = 1e-10
 """Floor of categorical probabilities inside logs, and of p_u in the actor-loss variant (§7.3)."""
 ABSENT_LOG_WEIGHT = -1e30
@@ -58,7 +58,7 @@ _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
 # ---------------------------------------------------------------------------------------------
-# Mixture weights (spec §3.1) and entropies
+# Mixture weights (§3.1) and entropies
 # ---------------------------------------------------------------------------------------------
 
 
@@ -100,7 +100,7 @@ def masked_log_softmax(logits: Array, mask: Array | None = None) -> Array:
 
 
 def masked_softmax(logits: Array, mask: Array | None = None) -> Array:
-    """Mixture weights w_o = m_o·exp(ℓ_o) / Σ_j m_j·exp(ℓ_j) (spec §3.1), exact zeros on absent slots."""
+    """Mixture weights w_o = m_o·exp(ℓ_o) / Σ_j m_j·exp(ℓ_j) (§3.1), exact zeros on absent slots."""
     return jnp.exp(masked_log_softmax(logits, mask))
 
 
@@ -110,7 +110,7 @@ def clipped_entropy(probs: Array, axis: int = -1) -> Array:
 
 
 # ---------------------------------------------------------------------------------------------
-# Squashed Gaussian pieces (spec §3.2)
+# Squashed Gaussian pieces (§3.2)
 # ---------------------------------------------------------------------------------------------
 
 
@@ -151,7 +151,7 @@ def _mixture_log_prob(
 
 
 # ---------------------------------------------------------------------------------------------
-# Squashed diagonal Gaussian mixture (paper eq. 6-9, spec §3.2-§3.4, §3.7, §3.9)
+# Squashed diagonal Gaussian mixture (paper eq. 6-9, §3.2-§3.4, §3.7, §3.9)
 # ---------------------------------------------------------------------------------------------
 
 
@@ -220,7 +220,7 @@ class SquashedGaussianMixture:
         """Per-object mixture: loc, log_scale (..., O, C, A); logits, mask (..., O).
 
         Components are flattened object-major to K = O·C, k = o·C + c; each object's weight is
-        split uniformly over its C components (spec §3.1.5), by repeating its logit C times.
+        split uniformly over its C components (§3.1.5), by repeating its logit C times.
         """
         loc, log_scale = jnp.asarray(loc), jnp.asarray(log_scale)
         if loc.ndim < 3 or loc.shape != log_scale.shape:
@@ -302,7 +302,7 @@ class SquashedGaussianMixture:
     def component_marginal_log_prob(self, action: Array) -> Array:
         """Per-dimension marginal log h(a_d; μ_kd, σ_kd) of every component: (..., K, A).
 
-        The explanation glyphs (spec §6.3) draw these 1-D marginals per object.
+        The explanation glyphs (§6.3) draw these 1-D marginals per object.
         """
         action = self._check_action(action)[..., None, :]
         z = (safe_atanh(action) - self.loc) * jnp.exp(-self.log_scale)
@@ -326,7 +326,7 @@ class SquashedGaussianMixture:
         return loc + jnp.exp(log_scale) * noise, component
 
     def sample_with_component(self, key: Array) -> tuple[Array, Array]:
-        """Ancestral sample (spec §3.3): k ~ Cat(w), a = tanh(μ_k + σ_k ε). Returns (a, k).
+        """Ancestral sample (§3.3): k ~ Cat(w), a = tanh(μ_k + σ_k ε). Returns (a, k).
 
         Absent slots are never chosen. Not differentiable w.r.t. the weights.
         """
@@ -372,7 +372,7 @@ class SquashedGaussianMixture:
     # -- deterministic summaries --------------------------------------------------------------
 
     def approximate_mode(self) -> Array:
-        """The present component's squashed mean tanh(μ_k) of highest mixture density (spec §3.9).
+        """The present component's squashed mean tanh(μ_k) of highest mixture density (§3.9).
 
         The reference's unused "approximate max": the true mode may lie between components and
         is shifted by the tanh Jacobian. Absent components' means are not candidates (the
@@ -404,7 +404,7 @@ class SquashedGaussianMixture:
 def squashed_gaussian(
     loc: Array, log_scale: Array, log_std_bounds: tuple[float, float] = SAC_LOG_STD_BOUNDS
 ) -> SquashedGaussianMixture:
-    """The baseline SAC policy tanh(N(μ, σ)) (spec §2.1) as a one-component mixture.
+    """The baseline SAC policy tanh(N(μ, σ)) (§2.1) as a one-component mixture.
 
     loc, log_scale: (..., A); log σ clipped to the SB3 bounds [-20, 2] by default.
     """
@@ -415,7 +415,7 @@ def squashed_gaussian(
 
 
 # ---------------------------------------------------------------------------------------------
-# Categorical mixture (paper eq. 3-4, spec §2.4, §3.5)
+# Categorical mixture (paper eq. 3-4, §2.4, §3.5)
 # ---------------------------------------------------------------------------------------------
 
 
@@ -515,7 +515,7 @@ class CategoricalMixture:
         return self.sample_with_component(key)[0]
 
     def mode(self) -> Array:
-        """argmax_a π(a|s): the XDSAC evaluation action (spec §3.8)."""
+        """argmax_a π(a|s): the XDSAC evaluation action (§3.8)."""
         return jnp.argmax(self.probs(), axis=-1)
 
     def components_distrax(self) -> distrax.Categorical:

@@ -168,7 +168,7 @@ def make_episode_rollout(env, agent, max_steps: int, mode: str = "eval") -> Call
     The env is stepped without auto-reset (``reset_env`` / ``step_env``, like the evaluation); once
     the episode has ended the carry is frozen and the remaining steps are marked invalid, so the
     record has the fixed length ``max_steps``. ``mode`` is the agent's act mode (default: its
-    evaluation policy, spec §3.8).
+    evaluation policy, docs/algorithms.md §3.8).
     """
     if int(max_steps) < 1:
         raise ValueError(f"max_steps must be a positive integer, got {max_steps}")

@@ -52,7 +52,7 @@ DEFAULT_MAX_SIDE = 7.0  # metres of view: a weight-1 glyph is ~90 px wide in a 7
 DEFAULT_OFFSET = 2.5  # metres between an object and the near edge of its glyph
 PEDAL_SCALE, PEDAL_OFFSET = 1.8, 0.5  # envs.actions pedal map: position = clip(raw / 1.8 + 0.5, 0, 1)
 
-# Discrete layout (spec algorithms.md §6.3): action index 4*i_steer + j, j = 2*i_throttle + i_brake.
+# Discrete layout (docs/algorithms.md §6.3): action index 4*i_steer + j, j = 2*i_throttle + i_brake.
 DISCRETE_ROW_J = (2, 0, 3, 1)  # top to bottom: throttle only, coast, both pedals, brake only
 DISCRETE_ROW_COLOURS = np.array([(0, 1, 0), (1, 1, 1), (1, 0.6, 0), (1, 0, 0)], np.float64)
 DISCRETE_ROW_NAMES = ("throttle", "coast", "both", "brake")
@@ -260,7 +260,7 @@ SCENES: dict[str, Scene] = {
         _trajectory_label,
         "alternate",
     ),
-    # Multi-agent (spec carenv-intersection.md §7.1): rows (present, x/30, y/30, ...) of the other
+    # Multi-agent (docs/carenv-intersection.md §7.1): rows (present, x/30, y/30, ...) of the other
     # vehicles; the base frame comes from envs.render.render_intersection_state (see render_base).
     "intersection": Scene("vehicles_set", 1, 2, lambda env, p: 30.0, _vehicle_label, "fixed"),
 }

@@ -1,4 +1,4 @@
-"""Pure loss functions of SAC, discrete SAC, XSAC and XDSAC (spec/algorithms.md §1–§3).
+"""Pure loss functions of SAC, discrete SAC, XSAC and XDSAC (docs/algorithms.md §1–§3).
 
 Everything here works on arrays that the networks already produced, so each equation can be
 checked in closed form on tiny hand-made inputs. The agents (``agents.py``) wire networks to

@@ -1,6 +1,6 @@
 """Flax (linen) networks for SAC, discrete SAC and their explainable mixture variants XSAC / XDSAC.
 
-Spec: ``algorithms.md`` §2-§4 and §7; paper §III-F and Table I.
+Reference: docs/algorithms.md §2-§4 and §7; paper §III-F and Table I.
 
 Conventions shared by every module here:
 
@@ -30,7 +30,7 @@ Array = jax.Array
 Observation = Mapping[str, Array]
 
 STATE_KEY = "state"
-# Finite stand-in for -inf on absent objects' mixture logits (spec §7.3): finite so that 0 * logit = 0.
+# Finite stand-in for -inf on absent objects' mixture logits (§7.3): finite so that 0 * logit = 0.
 MASKED_LOGIT = -1e20
 # log-std clips: XSAC mixtures (CleanRL-style, §2.3) and the SAC baseline (SB3 limits, §2.1).
 MIXTURE_LOG_STD_RANGE = (-5.0, 2.0)
@@ -47,7 +47,7 @@ def _float_dtype():
 
 
 def find_set_key(obs: Observation) -> str:
-    """Return the single observation key ending in ``_set`` (spec §0), with a clear error otherwise."""
+    """Return the single observation key ending in ``_set`` (§0), with a clear error otherwise."""
     set_keys = [k for k in obs if k.endswith("_set")]
     if len(set_keys) != 1 or STATE_KEY not in obs or len(obs) != 2:
         raise ValueError(
@@ -74,14 +74,14 @@ def _split_observation(obs: Observation, set_key: str | None) -> tuple[str, Arra
 
 
 def present_mask(objects: Array) -> Array:
-    """Boolean (..., O) mask from the present flag in column 0 (spec §4.1: ``x[..., 0] > 0``)."""
+    """Boolean (..., O) mask from the present flag in column 0 (§4.1: ``x[..., 0] > 0``)."""
     return objects[..., 0] > 0
 
 
 def object_inputs(
     obs: Observation, set_key: str | None = None, neutral_slot: bool = False
 ) -> tuple[Array, Array]:
-    """The X-actor observation reshaper (spec §4.1): per-object rows ``[x_o, z]`` and the present mask.
+    """The X-actor observation reshaper (§4.1): per-object rows ``[x_o, z]`` and the present mask.
 
     The object row keeps its present flag (and, for tracking, the index column); the state ``z`` is
     broadcast to every slot. ``neutral_slot`` prepends a present, all-zero object (multi-agent only),
@@ -100,7 +100,7 @@ def object_inputs(
 
 
 def tracking_index_feature(length: int) -> Array:
-    """Index column of the tracking set: ``2 i / L - 1`` for ``i = 0..L-1`` (spec §4.2, §7.2.10).
+    """Index column of the tracking set: ``2 i / L - 1`` for ``i = 0..L-1`` (§4.2, §7.2.10).
 
     **Quirk kept for parity:** divides by L, not L - 1, so it spans [-1, 1 - 2/L] (-1 ... 0.92 for L = 25).
     """
@@ -110,7 +110,7 @@ def tracking_index_feature(length: int) -> Array:
 
 
 def trajectory_to_set(trajectory: Array) -> Array:
-    """Sequence → set conversion (spec §4.2): flat (..., 2L) points → rows ``[1, index_i, x_i, y_i]``."""
+    """Sequence → set conversion (§4.2): flat (..., 2L) points → rows ``[1, index_i, x_i, y_i]``."""
     trajectory = jnp.asarray(trajectory)
     if trajectory.shape[-1] % 2:
         raise ValueError(f"flat trajectory must have an even last axis (x, y pairs), got {trajectory.shape}")
@@ -125,7 +125,7 @@ def trajectory_to_set(trajectory: Array) -> Array:
 
 
 def positional_encoding(values: Array, num_freqs: int = 4, include_input: bool = True) -> Array:
-    """Fourier positional encoding of a vector (spec §4.4), frequency-major layout.
+    """Fourier positional encoding of a vector (§4.4), frequency-major layout.
 
     ``[cos(π 2^k v)]_k ⊕ [sin(π 2^k v)]_k ⊕ v`` as a (2F[+1], D) array flattened row by row,
     giving (2F + 1)·D features (9·D for the default F = 4).
@@ -141,7 +141,7 @@ def positional_encoding(values: Array, num_freqs: int = 4, include_input: bool =
 
 
 def masked_mixture_weights(logits: Array, present: Array) -> Array:
-    """Masked softmax over the object axis (spec §3.1 steps 3-4): ``distributions.masked_softmax``.
+    """Masked softmax over the object axis (§3.1 steps 3-4): ``distributions.masked_softmax``.
 
     Absent slots get exactly 0 and no gradient whatever their logit; a sample without any present
     slot falls back to uniform 1/O.
@@ -150,7 +150,7 @@ def masked_mixture_weights(logits: Array, present: Array) -> Array:
 
 
 def centre_and_mask_logits(raw_logits: Array, present: Array) -> Array:
-    """Centre over **all** slots (spec §3.1 step 2, a no-op for the softmax), then mask absent slots."""
+    """Centre over **all** slots (§3.1 step 2, a no-op for the softmax), then mask absent slots."""
     centred = raw_logits - jnp.mean(raw_logits, axis=-1, keepdims=True)
     return jnp.where(present, centred, MASKED_LOGIT)
 
@@ -161,7 +161,7 @@ def centre_and_mask_logits(raw_logits: Array, present: Array) -> Array:
 
 
 class MLP(nn.Module):
-    """Dense + ReLU per width (spec §4: ReLU everywhere); ``activate_final=False`` keeps the last linear."""
+    """Dense + ReLU per width (§4: ReLU everywhere); ``activate_final=False`` keeps the last linear."""
 
     widths: Sequence[int]
     activate_final: bool = True
@@ -176,7 +176,7 @@ class MLP(nn.Module):
 
 
 def fourier_kernel_init(scale: float):
-    """W ~ N(0, (scale / d_in)²), plain (not truncated) normal (spec §4.4, §7.2.11)."""
+    """W ~ N(0, (scale / d_in)²), plain (not truncated) normal (§4.4, §7.2.11)."""
 
     def init(key, shape, dtype=jnp.float32):
         return (scale / shape[0]) * jax.random.normal(key, shape, dtype)
@@ -185,12 +185,12 @@ def fourier_kernel_init(scale: float):
 
 
 def uniform_symmetric_init(key, shape, dtype=jnp.float32):
-    """b ~ U(-1, 1) (spec §4.4)."""
+    """b ~ U(-1, 1) (§4.4)."""
     return jax.random.uniform(key, shape, dtype, -1.0, 1.0)
 
 
 class FourierFeatures(nn.Module):
-    """Learned Fourier features ``sin(π (W x + b))`` (LFF, spec §4.4); no ReLU afterwards, W and b trained."""
+    """Learned Fourier features ``sin(π (W x + b))`` (LFF, §4.4); no ReLU afterwards, W and b trained."""
 
     features: int
     scale: float = 30.0
@@ -207,7 +207,7 @@ class FourierFeatures(nn.Module):
 
 
 class DeepSet(nn.Module):
-    """Deep Set with learned Fourier features (LFF-DS, spec §4.4) on a padded set (..., O, F_obj).
+    """Deep Set with learned Fourier features (LFF-DS, §4.4) on a padded set (..., O, F_obj).
 
     The present column (0) is dropped from the items; item encodings of absent slots are zeroed before
     the sum, so the output is invariant to slot order and to the contents of absent rows.
@@ -236,11 +236,11 @@ class DeepSet(nn.Module):
 
 
 class DeepSetExtractor(nn.Module):
-    """Country Road / intersection critic and baseline-actor extractor (spec §4.4, ``deepset``).
+    """Country Road / intersection critic and baseline-actor extractor (§4.4, ``deepset``).
 
     Concatenates, in sorted key order (``cones_set`` then ``state``), the LFF Deep Set of the set and
     Dense(state_width) + ReLU of the state: 128 + 128 = 256 features by default. The intersection
-    (Appendix A, carenv-intersection.md §8.7) uses width 256 and no Fourier layer (``vehicles_set``
+    (Appendix A, docs/carenv-intersection.md §8.7) uses width 256 and no Fourier layer (``vehicles_set``
     then ``state``: 256 + 256 features); the layer counts (item 3, set 2) are the same.
     """
 
@@ -263,7 +263,7 @@ class DeepSetExtractor(nn.Module):
 
 
 class FlatPEExtractor(nn.Module):
-    """Parameter-free tracking extractor (spec §4.4, ``tracking_flat``).
+    """Parameter-free tracking extractor (§4.4, ``tracking_flat``).
 
     In sorted key order (``state`` then ``trajectory_set``): PE(state) ⊕ PE(flattened points), where the
     points drop the first ``meta_columns`` columns (present and index). 9·S + 9·2L features by default.
@@ -304,7 +304,7 @@ def _select_object(values: Array, index: Array) -> Array:
 
 @struct.dataclass
 class GaussianMixtureOutput:
-    """Full XSAC actor output for every object slot (spec §4.3 explanation outputs).
+    """Full XSAC actor output for every object slot (§4.3 explanation outputs).
 
     means, log_stds: (..., O, C, A), log_stds already clipped; mixture_logits: (..., O), centred over all
     slots and set to MASKED_LOGIT on absent slots; weights: (..., O) object weights w_o (absent → 0);
@@ -319,14 +319,14 @@ class GaussianMixtureOutput:
 
     @property
     def component_weights(self) -> Array:
-        """w_{o,c} = w_o / C (within-object weights are uniform, spec §3.1.5): (..., O, C)."""
+        """w_{o,c} = w_o / C (within-object weights are uniform, §3.1.5): (..., O, C)."""
         num_components = self.means.shape[-2]
         return jnp.broadcast_to(self.weights[..., None] / num_components, self.means.shape[:-1])
 
 
 @struct.dataclass
 class CategoricalMixtureOutput:
-    """Full XDSAC actor output (spec §2.4, §4.3).
+    """Full XDSAC actor output (§2.4, §4.3).
 
     logits: (..., O, N) per-object action logits, centred over actions, zeros on absent slots;
     mixture_logits: (..., O) as in GaussianMixtureOutput; weights: (..., O); present: (..., O) bool.
@@ -350,7 +350,7 @@ class CategoricalMixtureOutput:
 
 @struct.dataclass
 class FastSample:
-    """Result of an actor's fast acting path (spec §3.7).
+    """Result of an actor's fast acting path (§3.7).
 
     action: (..., A) float (continuous) or (...,) int32 (discrete); object_index: (...,) sampled object;
     component_index: (...,) sampled component (always 0 for discrete); mixture_logits: (..., O) as in the
@@ -394,7 +394,7 @@ class _MyopicTrunk(nn.Module):
         return h
 
     def raw_logit(self, h: Array) -> Array:
-        if self.uniform_mixture:  # ablation of spec §3.1.6: no φ, uniform weights over present objects
+        if self.uniform_mixture:  # ablation of §3.1.6: no φ, uniform weights over present objects
             return jnp.zeros(h.shape[:-1], h.dtype)
         return self.mixture_logit(h)[..., 0]
 
@@ -404,7 +404,7 @@ class _MyopicTrunk(nn.Module):
 
 
 class MixtureGaussianActor(nn.Module):
-    """XSAC per-object actor (spec §2.3, §4.3): one squashed-Gaussian mixture component per object.
+    """XSAC per-object actor (§2.3, §4.3): one squashed-Gaussian mixture component per object.
 
     For every slot o: μ, log σ ∈ R^{C×A} (log σ clipped to ``log_std_range``) and a mixture logit from
     a linear φ on hidden layer ``weight_depth`` (φ_d ∈ 1..depth, default the last, as in every config).
@@ -446,7 +446,7 @@ class MixtureGaussianActor(nn.Module):
         )
 
     def sample_fast(self, obs: Observation, key: Array) -> FastSample:
-        """Fast acting path (spec §3.7): sample the object first, then run the rest for it alone.
+        """Fast acting path (§3.7): sample the object first, then run the rest for it alone.
 
         Layers 1..φ_d and φ run for all O objects (the logits need them); layers φ_d+1..depth and the
         μ / log σ heads run once per sample. Distributionally identical to full-mixture sampling.
@@ -467,7 +467,7 @@ class MixtureGaussianActor(nn.Module):
 
 
 class MixtureCategoricalActor(nn.Module):
-    """XDSAC per-object actor (spec §2.4, §4.3): per object N action logits (centred over actions,
+    """XDSAC per-object actor (§2.4, §4.3): per object N action logits (centred over actions,
     zero on absent slots) and a mixture logit. The reference always branches φ off the last hidden
     layer; ``weight_depth`` generalises this as for XSAC (paper Table I).
     """
@@ -527,7 +527,7 @@ class GaussianOutput:
 
 
 class GaussianActor(nn.Module):
-    """SAC actor (spec §2.1): own extractor → MLP → linear μ and log σ (clipped to [-20, 2]).
+    """SAC actor (§2.1): own extractor → MLP → linear μ and log σ (clipped to [-20, 2]).
 
     The squashed-Gaussian sample is tanh(μ + σ ε); sampling/log-prob live in ``distributions``.
     """
@@ -546,7 +546,7 @@ class GaussianActor(nn.Module):
 
 
 class CategoricalActor(nn.Module):
-    """DSAC actor (spec §2.2): own extractor → MLP → N logits centred over actions, (..., N)."""
+    """DSAC actor (§2.2): own extractor → MLP → N logits centred over actions, (..., N)."""
 
     extractor: nn.Module
     num_actions: int = 12
@@ -567,7 +567,7 @@ class CategoricalActor(nn.Module):
 def broadcast_features(features: Array, action: Array) -> Array:
     """Insert singleton axes after the batch axes of ``features`` so it broadcasts against ``action``.
 
-    features (..., F) and action (..., k..., A) → features (..., 1..., F) (spec §4.5 broadcasting).
+    features (..., F) and action (..., k..., A) → features (..., 1..., F) (§4.5 broadcasting).
     """
     extra = action.ndim - features.ndim
     if extra < 0 or features.shape[:-1] != action.shape[: features.ndim - 1]:
@@ -630,7 +630,7 @@ def critic_ensemble(head: type[nn.Module], num_critics: int) -> type[nn.Module]:
 
 
 class ContinuousCritic(nn.Module):
-    """SAC / XSAC critic ensemble (spec §2.1, §4.5): one shared extractor F, ``num_critics`` heads.
+    """SAC / XSAC critic ensemble (§2.1, §4.5): one shared extractor F, ``num_critics`` heads.
 
     ``__call__(obs, action)`` → (num_critics, *action.shape[:-1]). ``action`` may carry extra axes after
     the observation batch axes (e.g. (B, O, C, A) for all mixture components): F(s) is computed once and
@@ -674,7 +674,7 @@ class DiscreteQHead(nn.Module):
 
 
 class DiscreteCritic(nn.Module):
-    """DSAC / XDSAC critic ensemble (spec §2.2, §4.5): all action values, (num_critics, ..., N)."""
+    """DSAC / XDSAC critic ensemble (§2.2, §4.5): all action values, (num_critics, ..., N)."""
 
     extractor: nn.Module
     num_actions: int = 12
@@ -703,7 +703,7 @@ class DiscreteCritic(nn.Module):
 
 @dataclasses.dataclass(frozen=True)
 class ObservationShape:
-    """Fixed observation layout of one scenario (spec §0)."""
+    """Fixed observation layout of one scenario (§0)."""
 
     set_key: str
     num_objects: int
@@ -722,7 +722,7 @@ ALGORITHMS = ("sac", "dsac", "xsac", "xdsac")
 
 @dataclasses.dataclass(frozen=True)
 class NetworkConfig:
-    """Static network sizes for one (env, algo) pair; ``make_network_config`` fills the spec §4.7 defaults."""
+    """Static network sizes for one (env, algo) pair; ``make_network_config`` fills the §4.7 defaults."""
 
     env: str
     algo: str
@@ -733,8 +733,8 @@ class NetworkConfig:
     critic_depth: int
     weight_depth: int  # φ_d, 1-based hidden layer feeding the mixture logit (X actors only)
     num_components: int = 1
-    uniform_mixture: bool = False  # ablation (spec §3.1.6), off in every config
-    # X actors only: an always-present all-zero object row is prepended (spec §4.1 / Appendix A), so
+    uniform_mixture: bool = False  # ablation (§3.1.6), off in every config
+    # X actors only: an always-present all-zero object row is prepended (§4.1 / Appendix A), so
     # the mixture has obs_shape.num_objects + 1 objects and object index 0 is the state-only component.
     neutral_object: bool = False
     num_critics: int = 2
@@ -770,8 +770,8 @@ class NetworkConfig:
 
 
 def make_network_config(env: str, algo: str, **overrides: Any) -> NetworkConfig:
-    """Spec §4.7 / §5.7 sizes for ``env`` ∈ {country_road, tracking, intersection}, ``algo`` ∈ {sac, dsac,
-    xsac, xdsac}; intersection per carenv-intersection.md §8.7 (baseline actors 2 × 256: not specified).
+    """§4.7 / §5.7 sizes for ``env`` ∈ {country_road, tracking, intersection}, ``algo`` ∈ {sac, dsac,
+    xsac, xdsac}; intersection per docs/carenv-intersection.md §8.7 (baseline actors 2 × 256: not specified).
 
     Any field of NetworkConfig can be overridden (e.g. tiny widths for tests).
     """
@@ -810,7 +810,7 @@ def validate_network_config(config: NetworkConfig) -> None:
     if config.algo not in ALGORITHMS:
         raise ValueError(f"unknown algo {config.algo!r}; expected one of {ALGORITHMS}")
     if config.algo == "xdsac" and not config.duelling:
-        raise ValueError("XDSAC always uses a duelling critic (spec §2.4)")
+        raise ValueError("XDSAC always uses a duelling critic (docs/algorithms.md §2.4)")
     if config.extractor not in ("deepset", "flat_pe"):
         raise ValueError(f"unknown extractor {config.extractor!r}; expected 'deepset' or 'flat_pe'")
     if config.fe_item_depth < 1 or config.fe_set_depth < 0:
@@ -862,7 +862,7 @@ class Networks:
 
 
 def make_networks(config: NetworkConfig) -> Networks:
-    """Build the actor and critic of spec §4.6 (each with its own extractor where it has one)."""
+    """Build the actor and critic of §4.6 (each with its own extractor where it has one)."""
     c = config
     validate_network_config(c)
     critic_widths = (c.critic_width,) * c.critic_depth
@@ -924,7 +924,7 @@ def mixture_actor_sample_flops(
 ) -> int:
     """Analytic dense-layer FLOPs of drawing one action from a myopic mixture actor (ReLU etc. ignored).
 
-    Full path: every layer and head for all O objects. Fast path (spec §3.7): layers 1..φ_d and φ for
+    Full path: every layer and head for all O objects. Fast path (§3.7): layers 1..φ_d and φ for
     all O objects, layers φ_d+1..depth and the heads (``head_outputs`` units) for one object only.
 
     Country Road XSAC (O = 100, 11 inputs, 256×3, heads 6): fast path 0.91 M / 13.9 M / 26.9 M FLOPs
