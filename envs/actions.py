@@ -1,4 +1,4 @@
-"""Action mappings of CarEnv (spec §4): raw agent actions -> vehicle control (s, a, b).
+"""CarEnv action mappings (docs/carenv-single-agent.md §4): raw agent actions -> vehicle control (s, a, b).
 
 The vehicle (``envs.vehicle.vehicle_step``) takes control = (steering command s in [-1, 1],
 throttle a in [0, 1], brake b in [0, 1]). Agents act in one of three spaces:

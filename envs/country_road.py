@@ -1,8 +1,8 @@
-"""Country Road: the paper's cone track (the original's ``racing`` config, spec §1.1, §7.2).
+"""Country Road: the paper's cone track (``racing`` of docs/carenv-single-agent.md §1.1, §7.2).
 
 Observation ``{"state": (6,), "cones_set": (100, 5)}``: rows ``[present, x/45, y/45, is_blue,
 is_yellow]`` for the remaining cones strictly inside the body-frame box −15 < x < 45, −30 < y < 30,
-in storage order, present rows first and zero padding after (spec §7.2). Blue (type 1) cones are on
+in storage order, present rows first and zero padding after (§7.2). Blue (type 1) cones are on
 the driver's right, yellow (type 2) on the left. Hitting a cone costs 0.2 and removes it.
 """
 

@@ -1,6 +1,6 @@
 """Multi-agent Intersection (CarEnv ``marl_intersection`` as used by the paper), fixed-slot JAX port.
 
-Spec: ``carenv-intersection.md``. Up to :data:`MAX_AGENTS` = 8 cars share a four-way crossing; each
+Reference: docs/carenv-intersection.md. Up to :data:`MAX_AGENTS` = 8 cars share a four-way crossing; each
 follows its own route (12 routes, see ``envs.intersection_geometry``) and is rewarded for progress
 along it. Cars appear at the four approaches, leave when they reach their goal, leave the road or
 collide, and are replaced by new ones. Everything is one pure, fixed-shape function of
@@ -8,10 +8,10 @@ collide, and are replaced by new ones. Everything is one pure, fixed-shape funct
 
 Agents live in 8 *slots* (leading axis of every per-agent array) with an ``alive`` mask. The
 original keeps agents in insertion order, which decides the vehicles-set row order and a reward
-detail of collisions (spec §4.4, §5.4); a per-slot ``spawn_seq`` number reproduces that order. A new
+detail of collisions (§4.4, §5.4); a per-slot ``spawn_seq`` number reproduces that order. A new
 agent takes the lowest free slot, and slots of agents terminating in the step are not free (§4.5).
 
-Step order (spec §4.2 / §11): physics, route tracker reward and slip penalty, goal (SET +1),
+Step order (§4.2 / §11): physics, route tracker reward and slip penalty, goal (SET +1),
 off-road (SET -1), pairwise collisions (soft penalty / SET 0 or -1 in agent order), metrics,
 spawning, observations of every slot alive now (survivors, terminating, new), then removal.
 
@@ -21,7 +21,7 @@ then belong to the new episode, ``info["final_obs"]`` keeps the ending step's ob
 and agents that acted and survived get ``truncated=True`` (a time limit, to be bootstrapped).
 
 Quirks of the original are reproduced by default and can be switched off with static flags of
-:class:`IntersectionParams` (spec §9): ``stale_spawn_timers`` (Q1), ``body_velocity_frame_bug``
+:class:`IntersectionParams` (§9): ``stale_spawn_timers`` (Q1), ``body_velocity_frame_bug``
 (Q2) and ``soft_collisions`` (Q3).
 """
 
@@ -43,7 +43,7 @@ from envs.vehicle import VehicleParams, VehicleState, body_velocity, odometry_ob
 MAX_AGENTS = 8
 NUM_SPAWNERS = 4
 CURRICULUM = (1, 2, 4, 8)
-# Curriculum probabilities proportional to 1/n (spec §8.3): (8, 4, 2, 1) / 15.
+# Curriculum probabilities proportional to 1/n (§8.3): (8, 4, 2, 1) / 15.
 CURRICULUM_PROBS = tuple(float(p) for p in (1.0 / np.array(CURRICULUM)) / np.sum(1.0 / np.array(CURRICULUM)))
 
 DONE_NONE, COMPLETED_ROUTE, LEFT_ROAD, COLLIDED = 0, 1, 2, 3
@@ -197,7 +197,7 @@ def _poses(vehicle: VehicleState):
 
 
 def route_tracker(params: IntersectionParams, route, prev_xy, prev_s, xy):
-    """Route tracker of spec §6.1 for positions (..., 2) on routes (...).
+    """Route tracker of §6.1 for positions (..., 2) on routes (...).
 
     Returns (r_track, s, moved, goal): r_track = k_forwards x (s - prev_s) - k_tracking x dist x moved
     with s, dist the global nearest point of the route (Q12), moved = |xy - prev_xy|, and
@@ -215,7 +215,7 @@ def route_tracker(params: IntersectionParams, route, prev_xy, prev_s, xy):
 
 
 def slip_penalty(params: IntersectionParams, vehicle: VehicleState):
-    """Rear-axle slip penalty in [0, 1] per car (spec §6.2), before the multiplication by dt."""
+    """Rear-axle slip penalty in [0, 1] per car (§6.2), before the multiplication by dt."""
     u_x, u_y = body_velocity(vehicle)
     vx_r = u_x
     vy_r = u_y - vehicle.yaw_rate * (params.vehicle.wheelbase / 2.0)
@@ -226,7 +226,7 @@ def slip_penalty(params: IntersectionParams, vehicle: VehicleState):
 
 
 def collision_rewards(params: IntersectionParams, poses, speed, alive, spawn_seq, reward):
-    """Pairwise collisions of spec §5.4 as (8, 8) arrays; returns (reward, hard_hit, hard_pairs x 2).
+    """Pairwise collisions of §5.4 as (8, 8) arrays; returns (reward, hard_hit, hard_pairs x 2).
 
     ``reward`` is the pending reward before the collision pass. Closed form of the original's
     sequential add/set: with a hard collision, agent a gets base(a) - penalty x (soft partners after
@@ -262,13 +262,13 @@ def collision_rewards(params: IntersectionParams, poses, speed, alive, spawn_seq
 
 
 # --------------------------------------------------------------------------------------------
-# Observations (spec §7)
+# Observations (§7)
 # --------------------------------------------------------------------------------------------
 
 
 def vehicles_set(params: IntersectionParams, vehicle: VehicleState, present, spawn_seq):
     """(8, 8, 7) float32: per ego slot, the other present cars in agent order, kept iff strictly
-    inside the +-sensor_range ego box, rows contiguous from 0 (spec §7.1). Absent egos: zeros.
+    inside the +-sensor_range ego box, rows contiguous from 0 (§7.1). Absent egos: zeros.
 
     Written as (ego, other) arrays per feature (no trailing axis of 2, no sort, no dot products):
     XLA on CPU handles those tiny shapes badly. The row of a kept car is the number of kept cars
@@ -306,7 +306,7 @@ def vehicles_set(params: IntersectionParams, vehicle: VehicleState, present, spa
 
 
 def state_observation(params: IntersectionParams, vehicle: VehicleState, route, s, present):
-    """(8, 66) float32: odometry (6) then the 30 navigation points in the ego frame (spec §7.2)."""
+    """(8, 66) float32: odometry (6) then the 30 navigation points in the ego frame (§7.2)."""
     dtype = vehicle.x.dtype
     odometry = odometry_observation(params.vehicle, vehicle)
     offsets = jnp.arange(params.nav_points, dtype=dtype) * params.nav_spacing
@@ -327,7 +327,7 @@ def observe(params: IntersectionParams, state: IntersectionState) -> dict[str, j
 
 
 # --------------------------------------------------------------------------------------------
-# Spawning (spec §2.3, §3.3, §3.4)
+# Spawning (§2.3, §3.3, §3.4)
 # --------------------------------------------------------------------------------------------
 
 
@@ -374,7 +374,7 @@ def _draw_max_vehicles(key, params: IntersectionParams):
 
 
 def _fresh_state(key, params: IntersectionParams, spawner_last, spawner_set) -> IntersectionState:
-    """Reset of spec §3.2: min(4, max_vehicles) cars on distinct random approaches, in slots 0.."""
+    """Reset of §3.2: min(4, max_vehicles) cars on distinct random approaches, in slots 0.."""
     dtype = default_float()
     key_cap, key_perm, key_cars = jax.random.split(key, 3)
     max_vehicles = _draw_max_vehicles(key_cap, params)
@@ -407,7 +407,7 @@ def _fresh_state(key, params: IntersectionParams, spawner_last, spawner_set) -> 
 
 
 def spawn_vehicles(key, params: IntersectionParams, state: IntersectionState, occupied, time):
-    """Spawning inside a step (spec §3.4). ``occupied`` (8,) = alive incl. terminating agents.
+    """Spawning inside a step (§3.4). ``occupied`` (8,) = alive incl. terminating agents.
 
     Returns (state with the new cars written into free slots, new-car mask (8,)).
     """
@@ -546,7 +546,7 @@ class IntersectionEnv(Environment):
         return obs, new_state
 
     def step_env(self, key: jax.Array, state: IntersectionState, action: Any, params: IntersectionParams):
-        """One multi-agent step (spec §4.2) plus the in-env episode restart.
+        """One multi-agent step (§4.2) plus the in-env episode restart.
 
         Returns per-slot ``(obs, state, reward, terminated, truncated, info)``; reward/terminated/
         truncated are meaningful where ``info["acted"]``. Info keys: ``acted``, ``alive``, ``final_obs``,
@@ -609,7 +609,7 @@ class IntersectionEnv(Environment):
         final_obs = observe(params, ended)
         ended = ended.replace(alive=(acted & ~terminated) | new)
 
-        # The training loop's restart (spec §8.4), done here.
+        # The training loop's restart (§8.4), done here.
         episode_end = step >= params.episode_steps
         restart_obs, restart_state = self.restart(key_restart, ended, params)
         next_state = jax.tree.map(lambda a, b: jnp.where(episode_end, a, b), restart_state, ended)

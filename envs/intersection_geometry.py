@@ -1,13 +1,13 @@
-"""Static geometry of the multi-agent intersection (spec carenv-intersection §2, §5.3, §5.4).
+"""Static geometry of the multi-agent intersection (docs/carenv-intersection.md §2, §5.3, §5.4).
 
 Everything here is pure and free of environment state:
 
 * host tables (numpy float64, built once at import): the 12 route polylines made by the turtle of
-  spec §2.1, their cumulative arc lengths, the spawn areas and poses (§2.3) and the road outline (§2.2);
+  §2.1, their cumulative arc lengths, the spawn areas and poses (§2.3) and the road outline (§2.2);
 * jittable, vmap-friendly functions on those tables: projection onto a route, points along a route,
   vehicle rectangles, road containment and rectangle overlap tests.
 
-Frame: ordinary maths axes; "N" is at negative y (spec §0). Route index r = 3 * approach + kind with
+Frame: ordinary maths axes; "N" is at negative y (§0). Route index r = 3 * approach + kind with
 approaches (N, S, W, E) and kinds (straight, right, left).
 
 Exactness: turtle headings are multiples of pi/2, so straight moves use exact unit vectors and only the
@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 # ------------------------------------------------------------------------------------------------
-# Constants (spec §1)
+# Constants (§1)
 # ------------------------------------------------------------------------------------------------
 
 LANE_SPACING = 3.0
@@ -37,7 +37,7 @@ VEHICLE_HALF_LENGTH = 1.905
 VEHICLE_HALF_WIDTH = 0.74
 SOFT_PAD_LONG = 0.5
 SOFT_PAD_LAT = 0.25
-SOFT_HALF_LENGTH = VEHICLE_HALF_LENGTH + SOFT_PAD_LONG  # 2.405: soft-collision rectangle (spec §5.4)
+SOFT_HALF_LENGTH = VEHICLE_HALF_LENGTH + SOFT_PAD_LONG  # 2.405: soft-collision rectangle (§5.4)
 SOFT_HALF_WIDTH = VEHICLE_HALF_WIDTH + SOFT_PAD_LAT  # 0.99
 MAX_ROUTE_VERTICES = 10
 NUM_ROUTES = 12
@@ -45,13 +45,13 @@ NUM_APPROACHES = 4
 APPROACHES = ("N", "S", "W", "E")
 ROUTE_KINDS = ("straight", "right", "left")
 ARC_CHORDS = 7  # chords per quarter circle (8 points incl. the start)
-SPAWN_AREA_ARCLENGTH = (1.5, 8.5)  # spawn area along the lane (spec §2.3)
+SPAWN_AREA_ARCLENGTH = (1.5, 8.5)  # spawn area along the lane (§2.3)
 SPAWN_AREA_HALF_LATERAL = 1.0
 ROAD_END = LANE_LENGTH + LANE_SPACING / 2  # 51.5: every route starts/ends this far from the centre
 ARM_HALF_WIDTH = LANE_SPACING / 2 + ROAD_HALF_WIDTH  # 4.0: half width of each arm of the road cross
 
 # ------------------------------------------------------------------------------------------------
-# Routes (spec §2.1)
+# Routes (§2.1)
 # ------------------------------------------------------------------------------------------------
 
 # Heading k * pi/2 as an exact unit vector, so straight moves introduce no rounding.
@@ -81,7 +81,7 @@ _ROUTE_MOVES = {
 
 
 def _turtle(start, quarter: int, moves) -> np.ndarray:
-    """Polyline of the spec's turtle: forward(d) appends one point; turn(r) sweeps a quarter circle
+    """Polyline of the turtle of §2.1: forward(d) appends one point; turn(r) sweeps a quarter circle
     about the centre |r| to the left (r > 0, maths-positive sweep) or right (r < 0) and appends 7 points."""
     points = [np.asarray(start, dtype=np.float64)]
     for move, amount in moves:
@@ -114,7 +114,7 @@ def _pad_collinear(points: np.ndarray, count: int) -> np.ndarray:
 
 
 def _arm_name(point) -> str:
-    """Compass name of the road arm on which a route end point lies (N at negative y, spec §0)."""
+    """Compass name of the road arm on which a route end point lies (N at negative y, §0)."""
     x, y = point
     if abs(y) > abs(x):
         return "N" if y < 0 else "S"
@@ -147,7 +147,7 @@ def route_index(approach: str, kind: str) -> int:
 
 
 # ------------------------------------------------------------------------------------------------
-# Spawn areas and poses (spec §2.3): computed on each approach's straight route
+# Spawn areas and poses (§2.3): computed on each approach's straight route
 # ------------------------------------------------------------------------------------------------
 
 
@@ -172,7 +172,7 @@ def _build_spawns():
 SPAWN_AREAS, SPAWN_POSES = _build_spawns()  # (4, 4) = (xmin, xmax, ymin, ymax); (4, 3) = (x, y, theta)
 
 # ------------------------------------------------------------------------------------------------
-# Road outline (spec §2.2)
+# Road outline (§2.2)
 # ------------------------------------------------------------------------------------------------
 
 
@@ -186,7 +186,7 @@ def _line_intersection(p, d, q, e) -> np.ndarray:
 def _inner_fillet(route: np.ndarray) -> np.ndarray:
     """Mitred inner (left) 2.5 m offset of a right-turn route between its two straight parts.
 
-    Joining consecutive offset lines gives the fillet of spec §2.2: the first and last joins lie on the
+    Joining consecutive offset lines gives the fillet of §2.2: the first and last joins lie on the
     offset straights (the arm sides |x| = 4, |y| = 4), the six others at rho from the turn centre."""
     direction = np.diff(route, axis=0)
     left = np.stack([-direction[:, 1], direction[:, 0]], axis=1)
@@ -254,7 +254,7 @@ def _check_route(route_xy, cumlen) -> None:
 def route_project(route_xy, cumlen, point):
     """Arc length s in [0, L] of the point of the route nearest to `point`, and the distance to it.
 
-    Global nearest point over all segments (spec §6.1, Q12), each segment's closest point clamped to its
+    Global nearest point over all segments (§6.1, Q12), each segment's closest point clamped to its
     ends; exact ties go to the earliest segment (argmin returns the first minimum). Zero-length segments
     are harmless."""
     _check_route(route_xy, cumlen)
@@ -325,7 +325,7 @@ def _points_on_road(points):
 
 
 def point_on_road(p):
-    """True iff the point lies inside or on the boundary of the road polygon (spec §2.2)."""
+    """True iff the point lies inside or on the boundary of the road polygon (§2.2)."""
     _require_shape("p", p, (2,))
     return _points_on_road(jnp.asarray(p, _float_dtype(p)))
 
@@ -354,9 +354,9 @@ def _edges_entering(x, y, c, s, hl, hw, tol):
 
 
 def rectangle_on_road(x, y, theta, half_length=VEHICLE_HALF_LENGTH, half_width=VEHICLE_HALF_WIDTH):
-    """Exact containment of the oriented rectangle in the (non-convex) road polygon (spec §2.2, §5.3, Q11).
+    """Exact containment of the oriented rectangle in the (non-convex) road polygon (§2.2, §5.3, Q11).
 
-    Spec rule: all four corners inside-or-on AND no road edge enters the rectangle's open interior;
+    Rule of §2.2: all four corners inside-or-on AND no road edge enters the rectangle's open interior;
     touching counts as contained. Evaluated in an equivalent, cheaper form: when no edge meets the open
     interior, that (connected) interior lies wholly inside or wholly outside the road, so the centre
     decides for every point, corners included. The edge test is a strict separating-axis test per edge
@@ -371,7 +371,7 @@ def rectangle_on_road(x, y, theta, half_length=VEHICLE_HALF_LENGTH, half_width=V
 
 
 def rectangles_intersect(pose_a, pose_b, half_length, half_width):
-    """True iff two closed oriented rectangles of equal size share a point (touching counts, spec §5.4).
+    """True iff two closed oriented rectangles of equal size share a point (touching counts, §5.4).
 
     Separating-axis test on the four rectangle axes with non-strict inequalities."""
     _require_shape("pose_a", pose_a, (3,))
@@ -391,7 +391,7 @@ def rectangles_intersect(pose_a, pose_b, half_length, half_width):
 
 def rectangle_intersects_box(pose, half_length, half_width, box):
     """True iff the closed oriented rectangle at `pose` and the closed axis-aligned box (xmin, xmax, ymin,
-    ymax) share a point (touching counts); e.g. "is this spawn area occupied" (spec §2.3)."""
+    ymax) share a point (touching counts); e.g. "is this spawn area occupied" (§2.3)."""
     _require_shape("pose", pose, (3,))
     _require_shape("box", box, (4,))
     dtype = _float_dtype(pose, half_length, half_width, box)

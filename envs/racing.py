@@ -1,8 +1,8 @@
-"""The racing problem shared by the Country Road and Tracking scenarios (spec §3, §6, §8).
+"""The racing problem of Country Road and Tracking (docs/carenv-single-agent.md §3, §6, §8).
 
 Both scenarios drive the same car on the same kind of track; they differ only in whether cones
 exist (and can be hit) and in the sensor that is observed. This module holds everything they share:
-params, state, the exact step order of spec §3.2, progress reward, cone collisions, idling and time
+params, state, the exact step order of §3.2, progress reward, cone collisions, idling and time
 limits with integer counters, metrics, the off-track termination that OVERWRITES the reward, and the
 track source (bank drawn at reset, or generation inside reset). Subclasses only add the sensor.
 
@@ -16,7 +16,7 @@ exact branch and bound over chunks of segments (:func:`project_point`). With
 ``track_source="generate"`` reset calls ``generate_track`` and the state carries the whole track
 (costly under auto-reset: under vmap the reset, i.e. a track generation, runs every step).
 
-Info (fixed shapes, every step): ``avg_track_velocity`` (spec's Metric.AvgTrackVelocity),
+Info (fixed shapes, every step): ``avg_track_velocity`` (the original's Metric.AvgTrackVelocity),
 ``cones_hit`` (Metric.ConesHit, cumulative, always 0 for Tracking), ``done_reason``
 (:data:`DONE_NONE`/``LEFT_TRACK``/``MAX_TIME``/``IDLING`` = 0/1/2/3, as in the golden data),
 ``time_limit_truncated`` (= truncated), ``track_progress`` (m along the travel direction),
@@ -42,7 +42,7 @@ from envs.vehicle import VehicleParams, VehicleState, odometry_observation, vehi
 DONE_NONE, LEFT_TRACK, MAX_TIME, IDLING = 0, 1, 2, 3
 DONE_REASONS = {DONE_NONE: "", LEFT_TRACK: "LeftTrack", MAX_TIME: "MaxTime", IDLING: "Idling"}
 
-# Collision box of the car around the CoG (spec §1.1) and cone radius (spec §5.7).
+# Collision box of the car around the CoG (§1.1) and cone radius (§5.7).
 _BOX_HALF_LENGTH = 1.905
 _BOX_HALF_WIDTH = 0.74
 _CONE_RADIUS = 0.3
@@ -56,7 +56,7 @@ class RingTables:
     and the (N, 2) formulation of the projection ran ~40x slower. Segment i goes from vertex i to
     vertex i+1 of the padded ring (``Track`` pads with the first point, so padding segments have
     zero length). ``tangent_*[i]`` is the travel tangent used when the progress lookup lands on
-    index i: minus the direction of the first real (>= 1e-9 m) segment at index >= i (spec §6.1),
+    index i: minus the direction of the first real (>= 1e-9 m) segment at index >= i (§6.1),
     or of the last real segment when there is none.
     """
 
@@ -292,7 +292,7 @@ def project_point_global(view: TrackView, px, py):
 
 
 def project_point(view: TrackView, px, py):
-    """Global nearest point of the ring (spec §6.1): (s in [0, L), distance, travel tangent (2,)).
+    """Global nearest point of the ring (§6.1): (s in [0, L), distance, travel tangent (2,)).
 
     Same formula and tie-break as ``envs.track.project`` (the first of the nearest segments; a vertex
     belongs to the segment ending there); the tangent is the progress lookup of §6.1.
@@ -353,21 +353,21 @@ def points_at_arclength(view: TrackView, arcs):
 
 
 def _to_body(x_world, y_world, x, y, theta):
-    """World points into the body frame of pose (x, y, theta): B(theta)(P - p) (spec §0)."""
+    """World points into the body frame of pose (x, y, theta): B(theta)(P - p) (§0)."""
     cos_t, sin_t = jnp.cos(theta), jnp.sin(theta)
     dx, dy = x_world - x, y_world - y
     return cos_t * dx + sin_t * dy, -sin_t * dx + cos_t * dy
 
 
 def cone_body_positions(view: TrackView, vehicle: VehicleState):
-    """All cone centres in the body frame of the car (spec §6.3, §7.2)."""
+    """All cone centres in the body frame of the car (§6.3, §7.2)."""
     cones = jnp.arange(view.tables.cone_x.shape[-1])
     x_world, y_world = view.take(view.tables.cone_x, cones), view.take(view.tables.cone_y, cones)
     return _to_body(x_world, y_world, vehicle.x, vehicle.y, vehicle.theta)
 
 
 def _cone_hits(bx, by):
-    """Cone centres (body frame) inside the collision box dilated by the cone radius (spec §6.3)."""
+    """Cone centres (body frame) inside the collision box dilated by the cone radius (§6.3)."""
     a, b, r = _BOX_HALF_LENGTH, _BOX_HALF_WIDTH, _CONE_RADIUS
     candidate = (bx > -a - r) & (bx < a + r) & (by > -b - r) & (by < b + r)
     along = (bx > -a) & (bx < a) & (by > -b - r) & (by < b + r)
@@ -386,8 +386,8 @@ def _cone_hits(bx, by):
 class RacingEnv(Environment):
     """Shared racing logic; subclasses set ``has_cones`` and implement ``_sensor``/``_sensor_space``.
 
-    ``discrete=True`` selects the paper's 12-way action table (spec §4.2); otherwise the action is
-    the native Box(-1, 1, (3,)) (steer, throttle pedal, brake pedal) of spec §4.1.
+    ``discrete=True`` selects the paper's 12-way action table (§4.2); otherwise the action is
+    the native Box(-1, 1, (3,)) (steer, throttle pedal, brake pedal) of §4.1.
     """
 
     has_cones: bool = True
@@ -577,7 +577,7 @@ class RacingEnv(Environment):
         velocity_sum = state.velocity_sum + along / dt
         avg_track_velocity = velocity_sum / step_count
 
-        # Exactly one ending reason, in the priority order of spec §3.3.
+        # Exactly one ending reason, in the priority order of §3.3.
         left_track = distance > params.track_width / 2
         max_time = step_count >= params.max_steps
         idling = idle_count >= params.max_idle_steps

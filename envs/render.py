@@ -1,6 +1,6 @@
 """Bird-view rendering with matplotlib: frames as RGB arrays, PNG files, GIF/MP4 episodes.
 
-The camera follows the ego car as in CarEnv (spec §10): the CoG sits at 80 % of the image height,
+The camera follows the ego car (docs/carenv-single-agent.md §10): the CoG sits at 80 % of the image height,
 the heading points up the screen, and one metre is ``height / 57.5`` pixels. The original draws into
 a y-down raster without flipping, which mirrors the picture (the car's left appears on the screen's
 right). We draw the physically correct view by default; ``mirrored=True`` reproduces the original.

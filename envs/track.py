@@ -1,7 +1,7 @@
-"""Fixed-shape, jittable race tracks for the CarEnv port (spec §5, §6.1, §7.3).
+"""Fixed-shape, jittable race tracks for the CarEnv port (docs/carenv-single-agent.md §5, §6.1, §7.3).
 
 A `Track` holds a closed centre line in the original's STORED order. The car always travels
-OPPOSITE to that order (spec §5.8), so progress is measured by decreasing stored arc length and the
+OPPOSITE to that order (§5.8), so progress is measured by decreasing stored arc length and the
 tracking sensor walks the ring backwards.
 
 Padding convention: `centerline[i]` for `i >= num_points` repeats `centerline[0]`. The ring's
@@ -11,12 +11,12 @@ so the geometry never needs a special case for the seam (a closed input whose la
 first just gets a zero-length closing segment). `cumlen[i]` is the stored-order arc length at vertex
 `i`, `cumlen[num_points:] == length`.
 
-Generator (spec §5) in fixed shapes: up to 20 raw points, a gift-wrapping convex hull (clockwise, as
+Generator (§5) in fixed shapes: up to 20 raw points, a gift-wrapping convex hull (clockwise, as
 the original's geometry library returns it), the non-convex perturbation, Gauss-Seidel push-apart
 as `lax` loops, a closed centripetal Catmull-Rom spline (20 samples per segment, junctions repeated
 exactly), and a bounded rejection loop (at most `MAX_ATTEMPTS` draws; the last draw is kept if none
-is valid, which happens with probability ~0.12**16). Approximations, all documented in the spec as
-acceptable:
+is valid, which happens with probability ~0.12**16). Approximations, all documented as acceptable in
+docs/carenv-single-agent.md:
 
 * Validity: only the simplicity check (§5.6 check 1, exact, over all pairs of non-adjacent
   segments) plus a length bound that guarantees the cones fit (`MAX_TRACK_LENGTH`, never reached:
@@ -25,10 +25,10 @@ acceptable:
   centre line whose 4 m buffer fails the one-hole test).
 * Rejection rate: this port rejects ~1-3 % of draws, the original ~12 %. A Shapely cross-check
   explains the gap: `is_simple` on the float64 spline with junction repeats equal only up to
-  rounding (as the original samples them, spec §5.5 correction) rejects ~25 % of the same draws,
+  rounding (as the original samples them, §5.5 correction) rejects ~25 % of the same draws,
   with exact repeats ~1 %. The original's extra rejections are rounding artefacts at the junctions,
   not real self-intersections; they are not reproduced (the accepted tracks' control-point,
-  sample, length and cone statistics match the spec's measured medians anyway).
+  sample, length and cone statistics match the measured medians of §5.5 and §5.7 anyway).
 * Cones (§5.7): instead of a polygon buffer, the 3.5 m offset curves are built from candidate
   points (offset segment midpoints, round-join arcs on the convex side of every vertex, the miter
   corner on the concave side); candidates closer than 3.5 m - `CONE_TRIM_TOL` to the centre line
@@ -50,8 +50,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-MAX_CENTERLINE = 800  # 20 samples x 2h control points, h <= 20 hull vertices (spec §5.10)
-MAX_CONES = 320  # measured maximum 254 (spec §5.7)
+MAX_CENTERLINE = 800  # 20 samples x 2h control points, h <= 20 hull vertices (§5.10)
+MAX_CONES = 320  # measured maximum 254 (§5.7)
 
 MAX_RAW_POINTS = 20
 MIN_RAW_POINTS = 10
@@ -72,7 +72,7 @@ MAX_TRACK_LENGTH = 775.0  # keeps 2 * L / 5 + 2 cones below MAX_CONES
 _SEG_BLOCK = 40  # MAX_DEDUP_POINTS = 19 blocks
 _POINT_BLOCK = 240  # (_JOIN_SLOTS + 1) * MAX_DEDUP_POINTS = 19 blocks
 _JOIN_SLOTS = 5  # candidate points per round join of the cone offset curves
-TINY_SEGMENT = 1e-9  # segments shorter than this are treated as zero-length (spec §5.5, §6.1)
+TINY_SEGMENT = 1e-9  # segments shorter than this are treated as zero-length (§5.5, §6.1)
 CONE_TYPE_BLUE = 1  # driver's right
 CONE_TYPE_YELLOW = 2  # driver's left
 
@@ -196,7 +196,7 @@ def _nearest_segment(track: Track, point: jax.Array):
     The closest point is written as (1 - t) a + t b so that it equals a vertex exactly at t = 0 or 1;
     at a vertex the tie between the two segments meeting there then goes to the EARLIER one (argmin
     takes the first minimum), i.e. the segment that ends at the vertex, as the original's progress
-    lookup requires (golden README §4.5). x and y are kept as separate vectors: XLA's CPU code is
+    lookup requires (tests/data/README.md §4). x and y are kept as separate vectors: XLA's CPU code is
     several times faster on them than on (N, 2) arrays.
     """
     ax, ay = track.centerline[:, 0], track.centerline[:, 1]
@@ -214,7 +214,7 @@ def _nearest_segment(track: Track, point: jax.Array):
 
 def project(track: Track, point: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Stored-order arc length s in [0, L) of the nearest point of the closed centre line to `point`
-    (global over all segments, spec §6.1) and the Euclidean distance to it."""
+    (global over all segments, §6.1) and the Euclidean distance to it."""
     point = jnp.asarray(point, dtype=track.centerline.dtype)
     index, t, d2 = _nearest_segment(track, point)
     lo, hi = track.cumlen[index], track.cumlen[index + 1]
@@ -245,7 +245,7 @@ def point_at_arclength(track: Track, s: jax.Array) -> jax.Array:
 def travel_points(track: Track, s: jax.Array, distances: jax.Array) -> jax.Array:
     """Points `distances` metres AHEAD along the travel direction from stored arc length s.
 
-    The tracking sensor (spec §7.3) walks the REVERSED ring: arc length a on the reversed ring and
+    The tracking sensor (§7.3) walks the REVERSED ring: arc length a on the reversed ring and
     s on the stored ring denote the same point when a = (c - s) mod L for a constant c that depends
     only on where the reversed ring starts, so (a + d) mod L on the reversed ring is the stored
     point at (s - d) mod L. With a = the reversed ring's nearest point this gives Q_k for
@@ -255,7 +255,7 @@ def travel_points(track: Track, s: jax.Array, distances: jax.Array) -> jax.Array
 
 
 def stored_direction(track: Track, s: jax.Array) -> jax.Array:
-    """Unit direction e_k (stored order) of the segment used by the progress reward (spec §6.1):
+    """Unit direction e_k (stored order) of the segment used by the progress reward (§6.1):
     the first segment, longer than TINY_SEGMENT, whose end arc length is >= s (at an exact vertex
     the segment ending there); clamped to the last real segment when s exceeds L by rounding.
 
@@ -276,23 +276,23 @@ def stored_direction(track: Track, s: jax.Array) -> jax.Array:
 
 
 def travel_tangent(track: Track, s: jax.Array) -> jax.Array:
-    """Travel tangent t(s) = -e_k (the car drives opposite to the stored order, spec §6.1)."""
+    """Travel tangent t(s) = -e_k (the car drives opposite to the stored order, §6.1)."""
     return -stored_direction(track, s)
 
 
 def progress_delta(track: Track, s_prev: jax.Array, s_now: jax.Array) -> jax.Array:
-    """Along-track distance moved, positive in the travel direction (spec §6.4)."""
+    """Along-track distance moved, positive in the travel direction (§6.4)."""
     delta = jnp.mod(s_prev - s_now, track.length)
     return jnp.where(delta > track.length / 2, delta - track.length, delta)
 
 
 # --------------------------------------------------------------------------------------------------
-# Generator pieces (spec §5)
+# Generator pieces (§5)
 # --------------------------------------------------------------------------------------------------
 
 
 def _push_apart(points: jax.Array, count: jax.Array) -> jax.Array:
-    """Gauss-Seidel push-apart of the first `count` points (spec §5.2): PUSH_SWEEPS sweeps over the
+    """Gauss-Seidel push-apart of the first `count` points (§5.2): PUSH_SWEEPS sweeps over the
     ordered pairs i < j, i outer, using the current positions; each point of a too-close pair moves
     by the full deficit."""
 
@@ -342,7 +342,7 @@ def _convex_hull(points: jax.Array, count: jax.Array):
 
 
 def _perturb(hull_xy: jax.Array, h: jax.Array, lam_u: jax.Array, off_u: jax.Array) -> jax.Array:
-    """Insert one displaced point after each hull vertex (spec §5.4) -> (2 * MAX_RAW_POINTS, 2)."""
+    """Insert one displaced point after each hull vertex (§5.4) -> (2 * MAX_RAW_POINTS, 2)."""
     ids = jnp.arange(hull_xy.shape[0])
     following = hull_xy[jnp.where(ids + 1 < h, ids + 1, 0)]
     lam = 0.25 + 0.5 * lam_u
@@ -356,7 +356,7 @@ def _perturb(hull_xy: jax.Array, h: jax.Array, lam_u: jax.Array, off_u: jax.Arra
 
 
 def _barry_goldman(p0, p1, p2, p3, frac):
-    """Centripetal Catmull-Rom point between p1 (frac = 0) and p2 (frac = 1), spec §5.5.
+    """Centripetal Catmull-Rom point between p1 (frac = 0) and p2 (frac = 1), §5.5.
 
     p0..p3 broadcast against each other with a trailing axis of 2; frac has the shape of the
     leading axes."""
@@ -378,7 +378,7 @@ def _barry_goldman(p0, p1, p2, p3, frac):
 
 
 def _catmull_rom(control: jax.Array, count: jax.Array) -> jax.Array:
-    """Closed centripetal Catmull-Rom samples (spec §5.5): (MAX_CONTROL_POINTS, 20, 2).
+    """Closed centripetal Catmull-Rom samples (§5.5): (MAX_CONTROL_POINTS, 20, 2).
 
     Segment j runs from C[j-1] to C[j] with 20 samples including both ends; the end samples are set
     to those control points exactly (the pyramid gives them up to rounding), so junctions repeat
@@ -402,7 +402,7 @@ def _dedup_ring(samples: jax.Array, num_segments: jax.Array):
 
 
 def _is_simple(ring: jax.Array, count: jax.Array) -> jax.Array:
-    """True iff no two non-adjacent segments of the closed ring cross (spec §5.6 check 1).
+    """True iff no two non-adjacent segments of the closed ring cross (§5.6 check 1).
 
     Segments i and j cross properly iff the endpoints of each lie strictly on opposite sides of the
     other's line. Evaluated in blocks of _SEG_BLOCK x _SEG_BLOCK pairs with a data-dependent number
@@ -442,7 +442,7 @@ def _ring_length(ring: jax.Array, count: jax.Array) -> jax.Array:
 
 
 def _draw_attempt(key: jax.Array, dtype):
-    """One attempt of spec §5.1 steps 1-7: spline samples, number of control points, validity."""
+    """One attempt of §5.1 steps 1-7: spline samples, number of control points, validity."""
     k_n, k_pts, k_lam, k_off = jax.random.split(key, 4)
     n = jax.random.randint(k_n, (), MIN_RAW_POINTS, MAX_RAW_POINTS + 1, dtype=jnp.int32)
     raw = jax.random.uniform(k_pts, (MAX_RAW_POINTS, 2), dtype=dtype) * EXTENT
@@ -551,7 +551,7 @@ def _distance_to_ring(points: jax.Array, num_points: jax.Array, ring: jax.Array,
 
 def _place_on_ring(points: jax.Array, keep: jax.Array, capacity: int):
     """Compact the kept points into a closed ring and place cones every CONE_SPACING metres by arc
-    length from its first point (spec §5.7). Returns ((capacity, 2) positions, number of cones)."""
+    length from its first point (§5.7). Returns ((capacity, 2) positions, number of cones)."""
     size = points.shape[0]
     rank = jnp.cumsum(keep.astype(jnp.int32)) - 1
     count = jnp.sum(keep.astype(jnp.int32))
@@ -659,7 +659,7 @@ def _generate(key: jax.Array):
     centerline = generated[order]  # padding rows repeat point 0 (== the last valid row)
     cumlen = _ring_cumlen(centerline)
 
-    # Start: generated sample 0, heading from sample 1 to sample 0; +pi when reversed (spec §5.8).
+    # Start: generated sample 0, heading from sample 1 to sample 0; +pi when reversed (§5.8).
     start_xy = generated[0]
     back = generated[0] - generated[1]
     theta = jnp.arctan2(back[1], back[0])
@@ -685,7 +685,7 @@ def _generate(key: jax.Array):
 
 
 def generate_track(key: jax.Array) -> Track:
-    """Random track as in spec §5 (fixed shapes; jit and vmap friendly)."""
+    """Random track as in §5 (fixed shapes; jit and vmap friendly)."""
     return _generate(key)[0]
 
 

@@ -1,9 +1,9 @@
-"""Tracking: the same track observed through a centre-line lookahead (``racing_tracking``, spec §1.2).
+"""Tracking: the track seen through a centre-line lookahead (docs/carenv-single-agent.md §1.2).
 
 No cones exist (no collisions, ``cones_hit`` stays 0). Observation ``{"state": (6,),
 "trajectory_set": (25, 4)}``: row k = ``[1, 2k/25 − 1, x_k, y_k]`` where (x_k, y_k) is the body-frame
 centre-line point k·2 m ahead (along the travel direction) of the nearest centre-line point, divided
-by √2·2·25 and clipped to [−1, 1] (spec §7.3, §7.4; the index column keeps the paper's k/n quirk, so
+by √2·2·25 and clipped to [−1, 1] (§7.3, §7.4; the index column keeps the paper's k/n quirk, so
 it never reaches +1). The set is in the default float dtype (float64 under x64, as the original).
 """
 

@@ -1,6 +1,6 @@
 """Dynamic single-track vehicle with Dugoff-type tyres: the CarEnv v1.2 racing car in pure JAX.
 
-Spec: ``carenv-single-agent.md`` §2 (model), §7.1 (odometry observation), §9 (pitfalls).
+Reference: docs/carenv-single-agent.md §2 (model), §7.1 (odometry observation), §9 (pitfalls).
 
 Everything is elementwise: a ``VehicleState`` whose fields share any batch shape is stepped in one
 call, and ``jax.vmap`` works as well. The 20 physics sub-steps run in a ``lax.fori_loop`` whose
@@ -13,7 +13,7 @@ recording (tolerance 1e-6); float32 stays within 3e-4 on the vehicle runs and 1.
 episodes (wheel speeds x r_w, stiff at 8 m/s), like a literal float32 port (4e-4 / 5e-4):
 
 * the world velocity gets the world-frame acceleration, v' = v + h W(theta)(F)/m, instead of the
-  round trip u' = B(theta)(v) + hF/m, v' = W(theta)(u') (spec §2.5 item 29 states both are equal);
+  round trip u' = B(theta)(v) + hF/m, v' = W(theta)(u') (§2.5 item 29 states both are equal);
 * cos/sin of the heading are not re-evaluated every sub-step but rotated along by the same angle
   increments h r' that update theta, and re-derived from theta at every environment step;
 * the loop is "rotated" by half a sub-step: each sub-step leaves its standstill snap (item 31)
@@ -22,7 +22,7 @@ episodes (wheel speeds x r_w, stiff at 8 m/s), like a literal float32 port (4e-4
   re-evaluate the whole force chain in every fusion that needs v', r' or p'.
 
 The model is ill-conditioned below ~5 m/s with rolling wheels and at the exact-zero wheel-lock /
-standstill switches (spec §2.6): it is reproduced faithfully, not "fixed". Those switches compare
+standstill switches (§2.6): it is reproduced faithfully, not "fixed". Those switches compare
 against exact zeros, which the lock and the snap write; keep that logic exact when editing.
 """
 
@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-# Small constants of the original, part of the model's definition (spec §2.5).
+# Small constants of the original, part of the model's definition (§2.5).
 _ENGINE_EPS = 1e-5  # engine torque divides by |omega| + this
 _SLIP_EPS = 1e-10  # slip-ratio denominator guard
 _TAN_ALPHA_EPS = 1e-3  # "safe" slip-angle tangent guard
@@ -44,14 +44,14 @@ _BRAKING_THRESHOLD = 0.05  # brake-light flag when b > this
 _STANDSTILL_SPEED_SQ = 0.01  # (0.1 m/s)^2
 _STANDSTILL_YAW_RATE = 0.05
 _STANDSTILL_OMEGA = 1e-5
-# Odometry normalisers of spec §7.1 (the yaw-rate one is literally 6.28, not 2*pi).
+# Odometry normalisers of §7.1 (the yaw-rate one is literally 6.28, not 2*pi).
 _YAW_RATE_NORMALISER = 6.28
 _WHEEL_SPEED_HEADROOM = 1.1
 
 
 @struct.dataclass
 class VehicleParams:
-    """Constants of the racing car (spec §2.2 / §2.3), all SI. Leaves may be traced (vmapped sweeps)."""
+    """Constants of the racing car (§2.2 / §2.3), all SI. Leaves may be traced (vmapped sweeps)."""
 
     wheelbase: float = 2.4  # CoG exactly midway: l_f = l_r = wheelbase / 2
     mass: float = 750.0
@@ -110,7 +110,7 @@ class VehicleParams:
 
 @struct.dataclass
 class VehicleState:
-    """Vehicle state (spec §2.1). ``vx, vy`` are the WORLD-frame CoG velocity; ``steer`` is the
+    """Vehicle state (§2.1). ``vx, vy`` are the WORLD-frame CoG velocity; ``steer`` is the
     actuator angle after the last step, i.e. the one the next step's physics uses."""
 
     x: jax.Array
@@ -125,7 +125,7 @@ class VehicleState:
 
     @classmethod
     def at_pose(cls, x, y, theta) -> VehicleState:
-        """A car at rest at the given pose, as after a reset (spec §3.1)."""
+        """A car at rest at the given pose, as after a reset (§3.1)."""
         dtype = jnp.result_type(float)
         x, y, theta = (jnp.asarray(v, dtype=dtype) for v in (x, y, theta))
         zero = jnp.zeros(jnp.broadcast_shapes(x.shape, y.shape, theta.shape), dtype)
@@ -159,7 +159,7 @@ class VehicleState:
 
 
 class VehicleDiagnostics(NamedTuple):
-    """Quantities of the LAST sub-step of an env step, from the state at its start (spec §2.5 item 33)."""
+    """Quantities of the LAST sub-step of an env step, from the state at its start (§2.5 item 33)."""
 
     slip_ratio: jax.Array  # (..., 2): sigma_f, sigma_r
     force_front_body: jax.Array  # (..., 2): front tyre force rotated into the body frame
@@ -175,7 +175,7 @@ def body_velocity(state: VehicleState):
 
 
 def tyre_force(c_sigma, c_alpha, slip_ratio, w_x, w_y, mu, f_z):
-    """Coupled Dugoff-type tyre of CarEnv (spec §2.5 items 9-14), in the tyre's own frame.
+    """Coupled Dugoff-type tyre of CarEnv (§2.5 items 9-14), in the tyre's own frame.
 
     Returns ``(F_x, F_y, slipping)``. Stiffnesses are per unit load; the original uses (1 + |sigma|)
     denominators and a clamped slip-angle tangent w_y / (|w_x| + 1e-3), not the textbook forms.
@@ -190,7 +190,7 @@ def _tyre(k_sigma, k_alpha, mu_fz, sigma, w_x, w_y):
     fx_lin = k_sigma * sigma * inv_slip
     fy_lin = -k_alpha * tan_alpha * inv_slip
     lam = mu_fz / (2.0 * jnp.sqrt(fx_lin * fx_lin + fy_lin * fy_lin) + _LAMBDA_EPS)
-    # lambda <= 1 is inclusive (spec §2.6).
+    # lambda <= 1 is inclusive (§2.6).
     scale = jnp.where(lam <= 1.0, lam * (2.0 - lam), 1.0)
     return scale * fx_lin, scale * fy_lin, lam <= _SLIPPING_LAMBDA
 
@@ -204,7 +204,7 @@ def slip_ratio(omega, wheel_radius, ground_speed):
 
 
 def steering_actuator(params: VehicleParams, steer, command):
-    """Rate-limited steering (spec §2.3): move towards command*delta_max by at most dt*rate, no overshoot.
+    """Rate-limited steering (§2.3): move towards command*delta_max by at most dt*rate, no overshoot.
 
     Applied once per ENVIRONMENT step with the full dt.
     """
@@ -217,7 +217,7 @@ def steering_actuator(params: VehicleParams, steer, command):
 
 
 def _axle_brake(omega, drive_sum, brake_available):
-    """Brake moment actually applied and whether it dominates (spec §2.5 items 18-19).
+    """Brake moment actually applied and whether it dominates (§2.5 items 18-19).
 
     A stopped wheel (omega == 0 exactly) gets static friction that cancels the other moments up
     to the available amount; a turning wheel gets the full moment against its rotation.
@@ -327,7 +327,7 @@ def _rotate(cos_t, sin_t, angle):
 
 
 def _substep(k: _StepConstants, carry: _Carry, pending_h):
-    """One 5 ms semi-implicit Euler sub-step (spec §2.5); returns the new carry and diagnostics."""
+    """One 5 ms semi-implicit Euler sub-step (§2.5); returns the new carry and diagnostics."""
     x, y, theta, vx, vy, r, omega_f, omega_r, cos_t, sin_t = _settle(carry, pending_h)
     rw = k.wheel_radius
 
@@ -406,7 +406,7 @@ def _prepare(params: VehicleParams, state: VehicleState, control):
     state = jax.tree.map(lambda v: jnp.asarray(v, dtype=dtype), state)
     control = control.astype(dtype)
     command, throttle, brake = control[..., 0], control[..., 1], control[..., 2]
-    # Steering delay quirk (spec §2.3): physics uses the angle from BEFORE this step's update.
+    # Steering delay quirk (§2.3): physics uses the angle from BEFORE this step's update.
     steer_used = state.steer
     new_steer = steering_actuator(params, state.steer, command)
     consts = _step_constants(params, steer_used, throttle, brake, dtype)
@@ -436,7 +436,7 @@ def _finish(consts: _StepConstants, carry, new_steer) -> VehicleState:
 
 
 def vehicle_step(params: VehicleParams, state: VehicleState, control, unroll: int = 1) -> VehicleState:
-    """One environment step (spec §2.4): steering actuator, then ``physics_substeps`` sub-steps.
+    """One environment step (§2.4): steering actuator, then ``physics_substeps`` sub-steps.
 
     ``control`` = (steering command in [-1, 1], throttle a in [0, 1], brake b in [0, 1]), i.e. the
     already mapped pedals (see ``envs.actions``). State fields and control may share any batch
@@ -476,7 +476,7 @@ def vehicle_step_with_diagnostics(params: VehicleParams, state: VehicleState, co
 
 
 def odometry_observation(params: VehicleParams, state: VehicleState) -> jax.Array:
-    """The 6-value ``state`` observation of spec §7.1, float32, clipped to [-1, 1].
+    """The 6-value ``state`` observation of §7.1, float32, clipped to [-1, 1].
 
     Computed in the state's dtype, cast to float32, then clipped, as the original does.
     """

@@ -1,4 +1,5 @@
-"""Action mappings (spec §4): pedal map, the paper's 12-way discrete table, the reduced 2-D action."""
+"""Action mappings (docs/carenv-single-agent.md §4): pedal map, the paper's 12-way discrete table, the
+reduced 2-D action."""
 
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from envs.actions import (
 
 DATA = Path(__file__).parent / "data"
 
-# Spec §4.2 table, in index order: (steer command, throttle a, brake b).
+# §4.2 table, in index order: (steer command, throttle a, brake b).
 SPEC_TABLE = [
     (-1, 0, 0),
     (-1, 0, 1),

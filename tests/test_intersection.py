@@ -1,4 +1,4 @@
-"""Multi-agent Intersection env: spec carenv-intersection.md §3-§8 rules and the §10 reference numbers."""
+"""Multi-agent Intersection env: docs/carenv-intersection.md §3-§8 rules and the §10 reference numbers."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ BRAKE = np.tile([0.0, -1.0, 1.0], (8, 1)).astype(np.float32)
 N_STRAIGHT = geo.route_index("N", "straight")  # N->S along x = -1.5, heading +pi/2
 UP = math.pi / 2
 
-# Spec §10 reference values, per approach N, S, W, E.
+# §10 reference values, per approach N, S, W, E.
 SPAWN_POINTS = {0: (-1.5, -46.5, UP), 1: (1.5, 46.5, -UP), 2: (-46.5, 1.5, 0.0), 3: (46.5, -1.5, math.pi)}
 SPAWN_AREAS = {
     0: (-2.5, -0.5, -50.0, -43.0),

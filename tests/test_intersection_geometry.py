@@ -1,6 +1,6 @@
-"""Intersection geometry (spec carenv-intersection §2, §5.3, §5.4, §10): routes, road, rectangle tests.
+"""Intersection geometry (docs/carenv-intersection.md §2, §5.3, §5.4, §10): routes, road, rectangle tests.
 
-Reference numbers come from the spec; the jittable tests are checked against small numpy brute forces
+Reference numbers come from §10 there; the jittable tests are checked against small numpy brute forces
 (distance to the route polylines, dense sampling, exact convex-polygon overlap)."""
 
 import math
@@ -30,7 +30,7 @@ def _segment_distances(points, a, b):
 
 
 def _road_clearance(points):
-    """Signed clearance of points from the road boundary (> 0 inside), from the spec's definition of
+    """Signed clearance of points from the road boundary (> 0 inside), from the definition in §2.2 of
     the road (points within 2.5 m of some route, flat ends at +-51.5). Lipschitz 1."""
     a = geo.ROUTE_XY[:, :-1].reshape(-1, 2)
     b = geo.ROUTE_XY[:, 1:].reshape(-1, 2)
@@ -180,7 +180,7 @@ def test_spawn_areas_and_poses(fns):
             fns["point_at"](geo.ROUTE_XY[r], geo.ROUTE_CUMLEN[r], jnp.asarray(geo.SPAWN_OFFSET))
         )
         np.testing.assert_allclose(point, geo.SPAWN_POSES[geo.ROUTE_APPROACH[r], :2], atol=1e-5)
-    # a jittered vehicle's box lies inside its spawn area (spec §2.3)
+    # a jittered vehicle's box lies inside its spawn area (§2.3)
     for a in range(4):
         for jx in (-0.2, 0.2):
             for jy in (-0.2, 0.2):
@@ -272,7 +272,7 @@ def test_point_on_road_matches_route_distance(fns):
 
 
 def test_corner_only_counterexample(fns):
-    """Spec §10: all four corners on the road, yet the rectangle spans the off-road corner."""
+    """§10: all four corners on the road, yet the rectangle spans the off-road corner."""
     corners = geo.rectangle_corners(-4.3, -4.3, -math.pi / 4, HL, HW)
     assert corners.shape == (4, 2)
     assert np.asarray(fns["on_road"](corners)).all()
@@ -302,7 +302,7 @@ def test_spawn_vehicles_contained(fns):
 
 
 def test_lateral_offset_limit(fns):
-    """Spec §5.3: on an arm the centre may be at most 4 - 0.74 = 3.26 m from the arm's centre line."""
+    """§5.3: on an arm the centre may be at most 4 - 0.74 = 3.26 m from the arm's centre line."""
     margin = 1e-3  # float32; float64 is checked to 1e-6 in test_float64_parity
     limit = geo.ARM_HALF_WIDTH - HW  # 3.26
     assert limit == pytest.approx(3.26)
@@ -347,7 +347,7 @@ def test_rectangle_on_road_matches_dense_boundary_sampling(fns):
     assert decided > 0.95 * n
     assert got.sum() > 40 and (~got).sum() > 40
 
-    # the spec's literal rule (four corners inside-or-on AND no edge enters) gives the same answers
+    # the literal rule of §2.2 (four corners inside-or-on AND no edge enters) gives the same answers
     def literal(pose):
         corners_on = jnp.all(jax.vmap(geo.point_on_road)(geo.rectangle_corners(*pose, HL, HW)))
         tol = geo.boundary_tolerance(pose.dtype)

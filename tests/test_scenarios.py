@@ -52,7 +52,7 @@ _rollout = jax.jit(rollout, static_argnums=0)
 
 
 # ----------------------------------------------------------------------------------------------
-# Golden replays (float64, spec golden README §4.4 / §4.5)
+# Golden replays (float64, tests/data/README.md §3 / §4)
 # ----------------------------------------------------------------------------------------------
 
 
@@ -181,7 +181,7 @@ def test_time_limit_truncates_at_step_600_and_beats_idling(tracking):
     assert k + 1 == 600
     assert out["truncated"][k] and not out["terminated"][k]
     assert out["info"]["done_reason"][k] == MAX_TIME
-    # Both limits on the same step: MaxTime has priority (spec §3.3).
+    # Both limits on the same step: MaxTime has priority (docs/carenv-single-agent.md §3.3).
     _, _, out = run(tracking, np.tile(STILL, (60, 1)), max_steps=51)
     k = first_done(out)
     assert k + 1 == 51 and out["info"]["done_reason"][k] == MAX_TIME
@@ -195,7 +195,7 @@ def test_full_throttle_leaves_track_with_reward_minus_one(road):
     assert out["reward"][k] == -1.0  # overwrite: no progress term, no cone penalty
     assert info["done_reason"][k] == LEFT_TRACK
     assert info["dist_center"][k] > 4.0 and np.all(info["dist_center"][:k] <= 4.0)
-    # Spec §8.3: straight at full throttle leaves after 31-46 steps on seeds 0-2, hitting cones.
+    # §8.3: straight at full throttle leaves after 31-46 steps on seeds 0-2, hitting cones.
     assert 31 <= k + 1 <= 46
     assert info["cones_hit"][k] >= 1
     assert np.all(out["reward"][:k] > -1.0)
@@ -409,7 +409,7 @@ def test_projection_is_global_and_agrees_with_track_module():
 
 
 def controller(obs, target_speed=8.0):
-    """The hand-written driver of spec §8.3 (raw continuous action from the tracking observation)."""
+    """The hand-written driver of §8.3 (raw continuous action from the tracking observation)."""
     traj = obs["trajectory_set"]
     steer = jnp.clip(2.0 * jnp.arctan2(traj[4, 3], traj[4, 2]) / 0.52, -1.0, 1.0)
     target = jnp.where(
@@ -423,7 +423,7 @@ def controller(obs, target_speed=8.0):
 
 @pytest.mark.slow
 def test_scripted_controller_return_matches_the_original_distribution():
-    """Spec §8.3: V = 8 m/s on 20 tracks gave mean return 36.5 (min 12.6, max 41.9), 18x MaxTime."""
+    """§8.3: V = 8 m/s on 20 tracks gave mean return 36.5 (min 12.6, max 41.9), 18x MaxTime."""
     env, params = envs.make("tracking", track_bank_size=20, track_seed=0)
     singles = [racing.with_track(params, jax.tree.map(lambda x, i=i: x[i], params.tracks)) for i in range(20)]
     singles = [env.prepare(p) for p in singles]

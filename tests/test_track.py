@@ -1,5 +1,5 @@
-"""Track generator (spec §5) and track geometry (spec §6.1, §7.3), against brute-force numpy,
-closed forms, the spec's measured statistics and the golden episodes."""
+"""Track generator (docs/carenv-single-agent.md §5) and track geometry (§6.1, §7.3), against
+brute-force numpy, closed forms, the measured statistics of §5 and the golden episodes."""
 
 from pathlib import Path
 
@@ -176,7 +176,7 @@ def test_projection_reproduces_golden_proj_s_and_distance(name, geometry):
 
 
 def test_travel_tangent_reproduces_golden_rewards(geometry):
-    """racing_tracking reward = 0.01 * v . t(s) exactly (spec §6.2); includes the two vertex steps
+    """racing_tracking reward = 0.01 * v . t(s) exactly (§6.2); includes the two vertex steps
     where only the 'segment ending at the vertex' rule gives the stored reward."""
     d = load_golden("episode_tracking_public.npz")
     with jax.enable_x64(True):
@@ -188,7 +188,7 @@ def test_travel_tangent_reproduces_golden_rewards(geometry):
 
 
 def test_travel_points_reproduce_golden_trajectory_set(geometry):
-    """Lookahead points along the reversed ring (spec §7.3) from the stored-order projection."""
+    """Lookahead points along the reversed ring (§7.3) from the stored-order projection."""
     d = load_golden("episode_tracking_public.npz")
     with jax.enable_x64(True):
         track = golden_track(d)
@@ -256,7 +256,7 @@ def test_open_and_closed_inputs_give_the_same_ring(geometry):
 
 
 def test_direction_lookup_skips_tiny_segments_and_takes_the_segment_ending_at_a_vertex(geometry):
-    """Spec §6.1 and its correction: the first segment whose end arc length is >= s, skipping
+    """§6.1 and its correction: the first segment whose end arc length is >= s, skipping
     segments shorter than ~1e-9 m (junction repeats that differ by rounding only)."""
     with jax.enable_x64(True):
         # square with a repeated corner at (10, 0) displaced by 1e-12 m sideways
@@ -356,7 +356,7 @@ def test_cones_lie_on_the_offset_curves(generated_np):
 
 
 def test_generator_statistics_match_the_spec(generated_np):
-    """Spec §5.5-§5.8 measured: control points 8-22 (median 14), samples 160-440 (median 280),
+    """§5.5-§5.8 measured: control points 8-22 (median 14), samples 160-440 (median 280),
     length 336-636 m (median 492), cones 135-254 (median 197, half each type), ~12 % rejected
     attempts (mean 1.14; checked in the slow test), 22-45 cones visible at reset (mean 28), laps
     CW/CCW 50/50."""
@@ -413,7 +413,7 @@ def test_start_pose_is_on_the_centre_line_between_the_cones(generated, geometry)
         _s, dist = geometry["project"](track, track.start_xy[None])
         assert float(dist[0]) < 1e-4
         heading = np.array([np.cos(float(track.start_theta)), np.sin(float(track.start_theta))])
-        # facing the travel direction = against the stored order (spec §5.8); after a reversal the
+        # facing the travel direction = against the stored order (§5.8); after a reversal the
         # heading is the chord G0 -> G1 of the generated curve, the tangent the stored chord into G0
         assert heading @ np.asarray(geometry["tangent"](track, jnp.zeros((1,))))[0] > 0.5
         count = int(track.num_cones)
@@ -465,7 +465,7 @@ def test_bank_is_deterministic_and_sampling_picks_members(generated):
 @pytest.mark.slow
 def test_vmapped_bank_equals_single_draws_and_attempt_statistics():
     """vmap inside the bank (batch_size > 1) gives the same tracks as jit(generate_track) on the
-    same keys; rejection rate and attempts over 256 draws (spec: ~12 % rejected, mean 1.14)."""
+    same keys; rejection rate and attempts over 256 draws (§5.6: ~12 % rejected, mean 1.14)."""
     key = jax.random.key(7)
     bank = T.make_track_bank(key, 4, batch_size=2)
     single = jax.jit(T.generate_track)

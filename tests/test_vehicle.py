@@ -1,4 +1,5 @@
-"""Vehicle model: spec §2.7 reference values, golden replay (float64), special cases, jit/vmap, float32."""
+"""Vehicle model: docs/carenv-single-agent.md §2.7 reference values, golden replay (float64), special
+cases, jit/vmap, float32."""
 
 import math
 from pathlib import Path
@@ -324,7 +325,7 @@ def test_steering_at_rest_moves_only_the_actuator(rollout):
 
 
 def test_standstill_snap_zeroes_velocity_and_yaw_rate(step):
-    """Slow car, stopped wheels, full brake: one step snaps v and r to exact zeros (spec §2.5 item 31)."""
+    """Slow car, stopped wheels, full brake: one step snaps v and r to exact zeros (§2.5 item 31)."""
     with jax.enable_x64(True):
         state = VehicleState.from_vector(jnp.array([1.0, 2.0, 0.3, 0.05, -0.03, 0.01, 0.0, 0.0, 0.0]))
         new = step(state, jnp.array([0.0, 0.0, 1.0]))
