@@ -1,4 +1,4 @@
-"""Agent configs: the paper presets of spec §5.7 / §4.7 and validation with clear errors."""
+"""Agent configs: the paper presets of docs/algorithms.md §5.7 / §4.7, validation with clear errors."""
 
 import math
 
@@ -153,7 +153,7 @@ def test_configs_are_frozen_and_hashable():
     [("sac", 3e-4, 2, None), ("dsac", 1e-4, 2, 10.0), ("xsac", 3e-4, 3, 10.0), ("xdsac", 3e-4, 3, 10.0)],
 )
 def test_intersection_paper_table(algo, lr, actor_depth, clip_norm):
-    """carenv-intersection.md §8.7; the baseline actors' depth is unspecified there → the critics' 2."""
+    """docs/carenv-intersection.md §8.7; the baseline actors' depth is unspecified there → the critics' 2."""
     cfg = paper_config("intersection", algo)
     assert "intersection" in ENVS
     assert cfg.actor_lr == cfg.critic_lr == lr and cfg.clip_norm == clip_norm

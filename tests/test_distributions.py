@@ -1,4 +1,4 @@
-"""Mixture distributions (spec algorithms.md §3, §7.3, §8.1-8.8; paper eq. 3-10).
+"""Mixture distributions (docs/algorithms.md §3, §7.3, §8 items 1-8; paper eq. 3-10).
 
 Closed forms, an independent probability-space implementation of the reference formula (§3.2),
 grid quadrature, Monte-Carlo statistics and gradient checks. Jitted functions are module-level
@@ -164,7 +164,7 @@ def random_mixture(seed, batch=(3,), k=5, a=3, present_prob=0.7):
 
 
 # ---------------------------------------------------------------------------------------------
-# Mixture weights: §3.1, invariants §8.1-8.2
+# Mixture weights: §3.1, invariants §8 items 1-2
 # ---------------------------------------------------------------------------------------------
 
 
@@ -230,7 +230,7 @@ def test_components_per_object_split_the_object_weight():
 
 
 # ---------------------------------------------------------------------------------------------
-# Squashed Gaussian mixture density: §3.2, invariants §8.3-8.4
+# Squashed Gaussian mixture density: §3.2, invariants §8 items 3-4
 # ---------------------------------------------------------------------------------------------
 
 
@@ -373,7 +373,7 @@ def test_density_integrates_to_one_in_2d(density_2d):
 
 
 # ---------------------------------------------------------------------------------------------
-# Sampling: §3.3, §3.4 (eq. 9), invariants §8.5-8.6
+# Sampling: §3.3, §3.4 (eq. 9), invariants §8 items 5-6
 # ---------------------------------------------------------------------------------------------
 
 NUM_DRAWS = 40_000
@@ -490,7 +490,7 @@ def test_absent_objects_get_zero_weight_and_zero_gradient():
     assert np.all(np.asarray(out["weights"])[:, 3:] == 0.0)
     for name, value in jax.tree_util.tree_leaves_with_path(out):
         assert np.all(np.isfinite(value)), name
-    # The result equals the mixture without those slots (padding invariance, §8.8).
+    # The result equals the mixture without those slots (padding invariance, §8 item 8).
     trimmed = gm_log_prob(loc[:, :3], log_scale[:, :3], logits[:, :3], mask[:, :3], STANDARD_ACTION)
     np.testing.assert_allclose(out["log_prob"], trimmed, rtol=1e-6)
 
@@ -594,7 +594,7 @@ def test_bad_shapes_raise_clear_errors():
 
 
 # ---------------------------------------------------------------------------------------------
-# Categorical mixture: eq. 3-4, §2.4, §3.5, invariant §8.7
+# Categorical mixture: eq. 3-4, §2.4, §3.5, invariant §8 item 7
 # ---------------------------------------------------------------------------------------------
 
 

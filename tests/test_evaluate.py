@@ -1,4 +1,5 @@
-"""Evaluation protocol (spec §6.1) with scripted drivers of known outcome, and the run summary."""
+"""Evaluation protocol (docs/algorithms.md §6.1) with scripted drivers of known outcome, and the run
+summary."""
 
 import json
 
@@ -39,7 +40,7 @@ def scripted_evaluate(tmp_path_factory):
 
 
 def test_a_car_that_never_moves_idles_out_after_51_steps(scripted_evaluate):
-    # Pedals released and brake fully pressed (spec §3.3: truncated at step 51, reason Idling, return 0).
+    # No throttle, full brake: truncated at step 51 (Idling), return 0 (docs/carenv-single-agent.md §3.3).
     episodes = jax.device_get(scripted_evaluate(jax.random.PRNGKey(0), jnp.array([0.0, -1.0, 1.0])))
     np.testing.assert_array_equal(episodes["length"], [51, 51, 51])
     np.testing.assert_array_equal(episodes["return"], [0.0, 0.0, 0.0])
@@ -49,7 +50,7 @@ def test_a_car_that_never_moves_idles_out_after_51_steps(scripted_evaluate):
 
 
 def test_full_throttle_straight_ahead_leaves_the_track(scripted_evaluate):
-    # Spec §8.3: driving straight at full throttle leaves the track after a few dozen steps.
+    # docs/carenv-single-agent.md §8.3: straight at full throttle leaves the track after a few dozen steps.
     episodes = jax.device_get(scripted_evaluate(jax.random.PRNGKey(0), jnp.array([0.0, 1.0, -1.0])))
     assert episodes["terminated"].all() and not episodes["truncated"].any()
     assert (episodes["length"] > 10).all() and (episodes["length"] < 200).all()

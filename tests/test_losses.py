@@ -1,4 +1,5 @@
-"""Closed-form checks of every loss in xrl_jax.losses on tiny hand-made inputs (spec §1–§3, §8)."""
+"""Closed-form checks of every loss in xrl_jax.losses on tiny hand-made inputs
+(docs/algorithms.md §1–§3, §8)."""
 
 import jax
 import jax.numpy as jnp
@@ -184,7 +185,7 @@ def test_xsac_weights_get_gradient_through_expectation():
 
 @pytest.mark.parametrize("entropy, direction", [(5.0, -1.0), (-5.0, 1.0)])
 def test_entropy_coefficient_gradient_sign(entropy, direction):
-    """§8.10: entropy above target → log α decreases (gradient descent), below → increases."""
+    """§8 item 10: entropy above target → log α decreases (gradient descent), below → increases."""
     target = 0.0
     ent = jnp.full((4,), entropy)
     loss_fn = lambda la: losses.entropy_coef_loss(la, ent, target)[0]

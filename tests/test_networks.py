@@ -1,4 +1,5 @@
-"""Networks: shapes, set invariances, masking, fast acting path, critic broadcasting, sizes (spec §3-§4)."""
+"""Networks: shapes, set invariances, masking, fast acting path, critic broadcasting, sizes
+(docs/algorithms.md §3-§4)."""
 
 import jax
 import jax.numpy as jnp
@@ -124,7 +125,7 @@ def test_tracking_index_feature_quirk_divides_by_length():
     index = np.asarray(N.tracking_index_feature(25))
     assert index.shape == (25,)
     np.testing.assert_allclose(index[:3], [-1.0, -0.92, -0.84], atol=1e-6)
-    np.testing.assert_allclose(index[-1], 0.92, atol=1e-6)  # not +1: 2i/L - 1, spec §4.2 quirk
+    np.testing.assert_allclose(index[-1], 0.92, atol=1e-6)  # not +1: 2i/L - 1, §4.2 quirk
     np.testing.assert_allclose(np.diff(index), 0.08, atol=1e-6)
 
 
@@ -385,7 +386,7 @@ def test_categorical_mixture_outputs(categorical_actor, small_obs):
     np.testing.assert_allclose(
         out.probs, jnp.einsum("...o,...on->...n", out.weights, out.object_probs), rtol=1e-6
     )
-    # with one present object the mixture is that object's distribution (spec §8.7)
+    # with one present object the mixture is that object's distribution (§8 item 7)
     single = random_observation(8, BATCH, 7, 5, 1)
     one = full(params, single)
     np.testing.assert_allclose(one.probs, one.object_probs[..., 0, :], rtol=1e-6)
@@ -435,7 +436,7 @@ def test_critic_over_k_actions_equals_k_separate_calls(continuous_critic, small_
     per_action = jax.jit(jax.vmap(jax.vmap(apply, (None, None, -2), -1), (None, None, -3), -2))
     np.testing.assert_allclose(per_action(params, small_obs, actions), q_all, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(q_all[..., 3, 1], apply(params, small_obs, actions[..., 3, 1, :]), rtol=1e-5)
-    # same as tiling the observation explicitly (spec §8.9)
+    # same as tiling the observation explicitly (§8 item 9)
     tiled = jax.tree_util.tree_map(
         lambda x: jnp.broadcast_to(x[:, :, None, None], (*BATCH, 7, 2, *x.shape[2:])), small_obs
     )
@@ -541,7 +542,7 @@ def test_fast_path_xla_flops_match_paper_table_1():
 
 
 # ---------------------------------------------------------------------------------------------
-# Multi-agent intersection (algorithms.md Appendix A, carenv-intersection.md §8.7)
+# Multi-agent intersection (docs/algorithms.md Appendix A, docs/carenv-intersection.md §8.7)
 # ---------------------------------------------------------------------------------------------
 
 
