@@ -1,5 +1,6 @@
-"""Agents: update order (§1.5), jit + vmap over seeds, determinism, acting modes (§3.7–3.8),
-the XSAC Monte-Carlo objective (§8.6), XDSAC closed form, κ, α direction (§8.10), masking."""
+"""Agents (docs/algorithms.md): update order (§1.5), jit + vmap over seeds, determinism, acting modes
+(§3.7–3.8), the XSAC Monte-Carlo objective (§8 item 6), XDSAC closed form, κ, α direction (§8 item 10),
+masking."""
 
 import dataclasses
 import functools
@@ -127,7 +128,7 @@ def test_update_is_deterministic_under_a_fixed_key(setup):
 
 
 def test_entropy_coefficient_moves_towards_target(setup):
-    """§8.10 at agent level: seed 0 (target −100, entropy above it) lowers α, seed 1 raises it."""
+    """§8 item 10 at agent level: seed 0 (target −100, entropy above it) lowers α, seed 1 raises it."""
     old = np.exp(np.asarray(setup["states"].log_alpha))
     new = np.asarray(setup["metrics"]["ent_coef"])
     np.testing.assert_allclose(old, 0.1, rtol=1e-6)
@@ -231,7 +232,7 @@ def xsac_agent():
 
 
 def test_xsac_objective_matches_monte_carlo_estimate():
-    """§8.6: Σ_k w_k E_ε[α log π(a_k) − Q(a_k)] − κH(w) (one sample per component, as implemented)
+    """§8 item 6: Σ_k w_k E_ε[α log π(a_k) − Q(a_k)] − κH(w) (one sample per component, as implemented)
     equals the brute-force E_{k~w, a~π_k}[α log π(a) − Q(a)] − κH(w) from ancestral sampling."""
     key = jax.random.PRNGKey(7)
     k1, k2, k3 = jax.random.split(key, 3)
@@ -344,7 +345,7 @@ def test_xdsac_actor_loss_equals_explicit_sum_over_actions():
     total = 0.0
     for b in range(B):
         pi = sum(w[b, o] * q_obj[b, o] for o in range(O))
-        np.testing.assert_allclose(pi.sum(), 1.0, rtol=1e-6)  # §8.7
+        np.testing.assert_allclose(pi.sum(), 1.0, rtol=1e-6)  # §8 item 7
         h_pi = -np.sum(pi * np.log(pi))
         h_w = -sum(x * np.log(x) for x in w[b] if x > 0)
         total += -(np.dot(pi, q[b]) + 0.1 * h_pi + 0.05 * h_w)
@@ -352,7 +353,7 @@ def test_xdsac_actor_loss_equals_explicit_sum_over_actions():
 
 
 def test_permuting_object_slots_leaves_the_losses_unchanged():
-    """§8.8 at agent level (XDSAC: no sampling noise to re-order)."""
+    """§8 item 8 at agent level (XDSAC: no sampling noise to re-order)."""
     out = loss_checks("xdsac")
     for name in ("actor", "critic"):
         np.testing.assert_allclose(out["clean"][name], out["permuted"][name], rtol=1e-5)
@@ -525,7 +526,7 @@ def adam_first_moment(opt_state):
 
 @pytest.mark.parametrize("algo", FIXED_ALPHA_ALGOS)
 def test_fixed_alpha_is_used_and_never_learned(algo):
-    """The reference's DSAC fixed-α path crashes (spec §2.2 quirk); here every agent honours a fixed α."""
+    """The reference's DSAC fixed-α path crashes (§2.2 quirk); here every agent honours a fixed α."""
     agent, state, batch, new_state, metrics = fixed_alpha_clipped_run(algo)
     np.testing.assert_allclose(state.alpha, FIXED_ALPHA, rtol=1e-6)
     assert float(new_state.log_alpha) == float(state.log_alpha)
