@@ -1,5 +1,6 @@
-"""Orbax checkpoints of the run state: exact round trip, newest-only retention, crash safety."""
+"""Orbax checkpoints of the run state: exact round trip, retention, crash safety, damage detection."""
 
+import shutil
 from typing import Any
 
 import jax
@@ -9,7 +10,14 @@ import pytest
 from flax import struct
 
 from xrl_jax.buffer import buffer_add, buffer_init
-from xrl_jax.checkpoint import Checkpointer, latest_step, restore_checkpoint, save_checkpoint
+from xrl_jax.checkpoint import (
+    MANIFEST_NAME,
+    Checkpointer,
+    NoGoodCheckpointError,
+    latest_step,
+    restore_checkpoint,
+    save_checkpoint,
+)
 
 
 @struct.dataclass
@@ -59,16 +67,16 @@ def test_round_trip_is_exact_and_keeps_metadata(tmp_path):
     assert restored.name == "run" and restored.buffer.next_obs is None
 
 
-def test_only_the_newest_is_kept_and_restored(tmp_path):
+def test_the_newest_two_are_kept_and_the_newest_restored(tmp_path):
     checkpointer = Checkpointer(tmp_path)
-    checkpointer.save(10, make_state(1.0), {"step": 10})
-    checkpointer.save(20, make_state(2.0), {"step": 20})
+    for step in (10, 20, 30):
+        checkpointer.save(step, make_state(step / 10), {"step": step})
     checkpointer.close()
-    assert latest_step(tmp_path) == 20
-    assert sorted(p.name for p in tmp_path.iterdir() if p.is_dir()) == ["20"]
+    assert latest_step(tmp_path) == 30
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_dir()) == ["20", "30"]
     restored, meta = restore_checkpoint(tmp_path, jax.eval_shape(make_state))
-    assert meta["step"] == 20
-    assert float(restored.params["b"]) == 2.0
+    assert meta["step"] == 30
+    assert float(restored.params["b"]) == 3.0
 
 
 def test_an_interrupted_save_does_not_hide_the_last_good_checkpoint(tmp_path):
@@ -89,3 +97,91 @@ def test_missing_checkpoint_raises(tmp_path):
         restore_checkpoint(tmp_path, jax.eval_shape(make_state))
     with pytest.raises(ValueError, match="max_to_keep"):
         Checkpointer(tmp_path, max_to_keep=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Damaged checkpoints: detected before they are trusted, with a fallback to the previous one
+# ---------------------------------------------------------------------------------------------
+
+
+def _data_files(folder):
+    return sorted(p for p in folder.rglob("*") if p.is_file() and p.parent.name == "d")
+
+
+def _flip_bytes(folder):
+    """What the issue found: random bytes written into a data file (orbax restored them silently)."""
+    for path in _data_files(folder / "state"):
+        data = bytearray(path.read_bytes())
+        middle = len(data) // 2
+        data[middle : middle + 16] = bytes(b ^ 0xFF for b in data[middle : middle + 16])
+        path.write_bytes(bytes(data))
+
+
+def _truncate(folder):
+    for path in _data_files(folder / "state"):
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+DAMAGE = {
+    "flipped bytes": _flip_bytes,
+    "truncated data": _truncate,
+    "broken metadata": lambda folder: (folder / "meta" / "metadata").write_text("{broken"),
+    "broken array metadata": lambda folder: (folder / "state" / "_METADATA").write_text("garbage"),
+    "missing state": lambda folder: shutil.rmtree(folder / "state"),
+}
+
+
+def _two_checkpoints(folder):
+    checkpointer = Checkpointer(folder)
+    checkpointer.save(10, make_state(1.0), {"step": 10})
+    checkpointer.save(20, make_state(2.0), {"step": 20})
+    return checkpointer
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGE))
+def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(tmp_path, damage):
+    checkpointer = _two_checkpoints(tmp_path / "ckpt")
+    DAMAGE[damage](tmp_path / "ckpt" / "20")
+    lines = []
+    state, meta = checkpointer.restore_newest_good(jax.eval_shape(make_state), log=lines.append)
+    checkpointer.close()
+    assert meta["step"] == 10
+    assert_trees_equal(state, make_state(1.0))
+    assert len(lines) == 1 and "ckpt/20 is damaged" in lines[0] and "falling back to step 10" in lines[0]
+    # set aside, so that it is neither restored again nor in the way of a new save of step 20
+    assert latest_step(tmp_path / "ckpt") == 10
+    assert [p.name.split("-")[0] for p in (tmp_path / "ckpt.rejected").iterdir()] == ["20"]
+
+
+def test_no_good_checkpoint_stops_with_every_reason(tmp_path):
+    checkpointer = _two_checkpoints(tmp_path / "ckpt")
+    _flip_bytes(tmp_path / "ckpt" / "20")
+    shutil.rmtree(tmp_path / "ckpt" / "10" / "state")
+    with pytest.raises(NoGoodCheckpointError) as info:
+        checkpointer.restore_newest_good(jax.eval_shape(make_state), log=lambda _: None)
+    checkpointer.close()
+    message = str(info.value)
+    assert "\n" not in message and "step 20: file state/" in message and "step 10: file state/" in message
+
+
+def test_the_callers_check_rejects_a_checkpoint(tmp_path):
+    """The trainer passes a finiteness check: a checkpoint that reads fine but holds NaN is refused."""
+    checkpointer = _two_checkpoints(tmp_path / "ckpt")
+
+    def check(state, meta):
+        return "not finite" if meta["step"] == 20 else None
+
+    lines = []
+    _, meta = checkpointer.restore_newest_good(jax.eval_shape(make_state), check, lines.append)
+    checkpointer.close()
+    assert meta["step"] == 10 and "(not finite)" in lines[0]
+
+
+def test_a_checkpoint_without_manifest_restores_with_a_warning(tmp_path):
+    """Checkpoints of earlier versions have no manifest: they restore, and the log says unverified."""
+    checkpointer = _two_checkpoints(tmp_path / "ckpt")
+    (tmp_path / "ckpt" / "20" / MANIFEST_NAME).unlink()
+    lines = []
+    _, meta = checkpointer.restore_newest_good(jax.eval_shape(make_state), log=lines.append)
+    checkpointer.close()
+    assert meta["step"] == 20 and len(lines) == 1 and "unverified" in lines[0]
