@@ -18,6 +18,7 @@ ENVS = ("country_road", "tracking", "intersection")  # = xrl_jax.train.ENVS (kep
 ALGOS = ("sac", "dsac", "xsac", "xdsac")
 PRESETS = ("paper", "quick", "smoke")
 ROOT = Path(__file__).resolve().parents[1]
+EXIT_DIVERGED = 3
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -40,8 +41,8 @@ def positive_int(text: str) -> int:
 
 EPILOG = """\
 presets:
-  paper  the spec's per-configuration hyper-parameters (1e6 steps, buffer 1e6, batch 256,
-         4 envs per seed, evaluation every 1e5 steps on 100 fixed tracks)
+  paper  the per-configuration hyper-parameters of docs/algorithms.md §5.7 (1e6 steps, buffer
+         1e6, batch 256, 4 envs per seed, evaluation every 1e5 steps on 100 fixed tracks)
   quick  80k steps per seed, a buffer that keeps every transition, width-64 networks, batch
          128, and optimisation constants for a short budget (initial alpha 0.005, alpha lr 1e-3,
          actor and critic lr 6e-4, all three decaying linearly to zero by the last update, gamma
@@ -53,7 +54,8 @@ presets:
 
 --set KEY=VALUE accepts any TrainConfig field (num_envs, warmup_steps, batch_size, buffer_size,
   log_interval, eval_interval, eval_episodes, checkpoint_interval, train_tracks, track_seed,
-  eval_track_seed, seed, reinit_steps, max_group_size, memory_budget_gb) or any agent field (actor_lr,
+  eval_track_seed, seed, reinit_steps, max_group_size, memory_budget_gb, checkpoint_minutes = also
+  checkpoint after this much wall time, default 30) or any agent field (actor_lr,
   critic_lr, gamma, tau, kappa, target_entropy, actor_width, critic_depth, truncation,
   lr_decay_updates = linear decay of the learning rates to zero over that many updates, ...;
   'agent.' prefix optional). Unknown keys fail with the list of allowed ones.
@@ -62,7 +64,17 @@ results folder:
   config.json (resolved config, versions, git commit), metrics/seed_<i>.jsonl (every
   log_interval steps), eval/seed_<i>.jsonl, checkpoints/, summary.json (IQM and 95 % stratified
   bootstrap CI over seeds, at the end and at every evaluation step) and learning_curve.png.
-  An existing folder is never overwritten: use --resume to continue it.
+  An existing folder is never overwritten: use --resume to continue it. One run writes into a
+  folder at a time (a second one is refused); a resume checks that the files it continues are all
+  there, and falls back to the previous checkpoint (two are kept) when the newest is damaged.
+
+stopping and failures:
+  Ctrl-C (SIGINT) or SIGTERM stops the run at once, or after the running chunk with a checkpoint when
+  that ends within XRL_JAX_STOP_GRACE_S (default 30) seconds; the message says what is kept and how
+  to resume. Exit status: 0 done, 1 a failure the message explains (full disk, no usable checkpoint),
+  2 bad input, 3 a seed diverged (a non-finite loss or parameter: the run stops at once, naming the
+  seed, the step and the quantity, and keeps the last good checkpoint), 130/143 stopped by
+  SIGINT/SIGTERM. Right after the first chunk with updates the run prints its estimated duration.
 
 environment: XRL_JAX_CACHE_DIR (default ~/.cache/xrl-jax) caches generated tracks and compiled code.
 """
@@ -175,7 +187,16 @@ def _resume_mismatches(args, stored) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from xrl_jax.train import ConfigError, MemoryPlanError, TrainConfig
+    from xrl_jax.interrupts import StopController
+
+    # Installed before jax is imported: from here on SIGINT/SIGTERM end the run cleanly at any moment.
+    with StopController() as stop:
+        return _main(args, argv, stop)
+
+
+def _main(args, argv, stop) -> int:
+    from xrl_jax.run_folder import RunFolderError, RunLock, holds_results
+    from xrl_jax.train import ConfigError, TrainConfig
 
     given_any = any(
         v is not None for v in (args.env, args.algo, args.seeds, args.steps, args.preset, args.set)
@@ -197,6 +218,7 @@ def main(argv: list[str] | None = None) -> int:
                 if diffs:
                     return fail(f"--resume {out} holds a run with another configuration ({'; '.join(diffs)})")
             cfg = stored
+            stop.keep(f"the checkpoints in {out} are kept")
         else:
             cfg = _config_from_args(args)
             out = (
@@ -206,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
                 / "results"
                 / (f"{cfg.env}-{cfg.algo}-{datetime.datetime.now(datetime.timezone.utc):%Y%m%d-%H%M%S}")
             )
-            if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            if out.exists() and (not out.is_dir() or holds_results(out)):
                 return fail(
                     f"results folder {out} already exists; "
                     f"choose another --out or continue it with --resume {out}"
@@ -218,13 +240,28 @@ def main(argv: list[str] | None = None) -> int:
                 probe.unlink()
             except OSError as err:
                 return fail(f"cannot write the results folder --out {out}: {err.strerror or err}")
-    except ConfigError as err:
+        lock = RunLock(out).acquire()
+    except (ConfigError, RunFolderError) as err:
         return fail(str(err))
+    try:
+        return _train(args, argv, cfg, out, stop)
+    finally:
+        lock.release()
+
+
+def _train(args, argv, cfg, out: Path, stop) -> int:
+    """Write the run's config (a new run) and train; every failure ends in one line and a status."""
+    from xrl_jax.checkpoint import NoGoodCheckpointError
+    from xrl_jax.interrupts import RunInterrupted, exit_status
+    from xrl_jax.run_folder import RunFolderError
+    from xrl_jax.train import ConfigError, DiskFullError, DivergenceError, MemoryPlanError
 
     enable_compilation_cache()
     from xrl_jax import evaluate as evaluate_mod
     from xrl_jax import train as train_mod
 
+    resume_command = f"python experiments/run.py --resume {out}"
+    stop.resume_hint = resume_command
     log = (lambda *a, **k: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr))
     if args.resume is None:
         document = evaluate_mod.config_document(
@@ -236,18 +273,22 @@ def main(argv: list[str] | None = None) -> int:
         f"{cfg.num_seeds} seed(s) x {cfg.total_steps} steps -> {out}"
     )
     try:
-        summary = train_mod.train(cfg, out, resume=args.resume is not None, progress=not args.quiet, log=log)
-    except (MemoryPlanError, ConfigError) as err:
+        summary = train_mod.train(
+            cfg, out, resume=args.resume is not None, progress=not args.quiet, log=log, stop=stop
+        )
+    except (MemoryPlanError, ConfigError, RunFolderError) as err:
         return fail(str(err))
-    except KeyboardInterrupt:
-        print(
-            f"\nrun.py: interrupted; continue with: python experiments/run.py --resume {out}", file=sys.stderr
-        )
-        return 130
+    except DivergenceError as err:
+        print(f"run.py: diverged: {err}", file=sys.stderr)
+        return EXIT_DIVERGED
+    except (DiskFullError, NoGoodCheckpointError) as err:
+        print(f"run.py: error: {err}", file=sys.stderr)
+        return 1
+    except RunInterrupted as err:
+        print(f"\nrun.py: {err}; continue with: {resume_command}", file=sys.stderr)
+        return exit_status(err.signum)
     if summary is None:
-        print(
-            f"run.py: stopped early; continue with: python experiments/run.py --resume {out}", file=sys.stderr
-        )
+        print(f"run.py: stopped early; continue with: {resume_command}", file=sys.stderr)
         return 1
     print(evaluate_mod.format_curve(summary))
     print()

@@ -119,16 +119,17 @@ def test_episode_window_keeps_the_last_hundred_finished_episodes():
         value = jnp.array([step, 1000 + step, 2000 + step], jnp.float32)
         window = add(window, done, value, jnp.ones(3, jnp.int32), done & (value > 2000), jnp.zeros(3))
         returns += [float(v) for v, d in zip(value, done, strict=True) if d]
-    means = jax.device_get(T._window_means(window))
+    means, filled = jax.device_get(T._window_means(window))
+    assert filled
     assert int(window.count) == len(returns)
     assert means["rollout/avg_episode_return"] == pytest.approx(np.mean(returns[-100:]), rel=1e-6)
     last = returns[-100:]
     assert means["rollout/early_termination_rate"] == pytest.approx(np.mean([r > 2000 for r in last]))
 
 
-def test_empty_window_reports_nan():
-    means = T._window_means(T._window_init(jnp.float32))
-    assert np.isnan(means["rollout/avg_episode_return"]) and int(means["rollout/episodes"]) == 0
+def test_empty_window_has_no_data():
+    means, filled = T._window_means(T._window_init(jnp.float32))
+    assert not filled and int(means["rollout/episodes"]) == 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -167,11 +168,14 @@ def test_warmup_then_one_update_per_transition(smoke_trainer):
     state = trainer.init(jnp.int32(0), jnp.arange(2, dtype=jnp.int32))
     updates, rows = [], []
     for chunk in range(cfg.num_chunks):
-        state, metrics = trainer.chunk(state, jnp.int32(chunk * cfg.chunk_vector_steps))
-        updates.append(np.asarray(metrics["train/updates"]))
-        rows.append(np.asarray(metrics["buffer/stored_rows"]))
-        losses = np.asarray(metrics["train/loss_critic"])
-        assert np.isnan(losses).all() if chunk == 0 else np.isfinite(losses).all()
+        state, report = trainer.chunk(state, jnp.int32(chunk * cfg.chunk_vector_steps))
+        updates.append(np.asarray(report.metrics["train/updates"]))
+        rows.append(np.asarray(report.metrics["buffer/stored_rows"]))
+        assert np.isfinite(np.asarray(report.metrics["train/loss_critic"])).all()
+        # the warm-up chunk has no update, so its losses have no data (written as null)
+        assert np.asarray(report.has_data["train/loss_critic"]).tolist() == [chunk > 0] * 2
+        assert np.asarray(report.health.first_nonfinite_step).tolist() == [-1, -1]
+        assert np.asarray(report.health.agent_finite).all()
     # 64 warm-up transitions without updates, then exactly one update per collected transition.
     assert [u.tolist() for u in updates] == [[0, 0], [64, 64], [128, 128]]
     assert [r.tolist() for r in rows] == [[16, 16], [32, 32], [48, 48]]

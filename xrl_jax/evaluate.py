@@ -1,4 +1,4 @@
-"""Evaluation on fixed tracks (spec/algorithms.md §6.1) and the run's results: summary, table, config.
+"""Evaluation on fixed tracks (docs/algorithms.md §6.1) and the run's results: summary, table, config.
 
 Protocol: ``n`` episodes, episode ``i`` always on track ``i`` of a fixed evaluation bank, so every
 evaluation of every seed sees the same tracks. Each agent acts in its evaluation mode (§3.8: SAC,
@@ -132,7 +132,7 @@ def evaluation_step_key(stream_key: jax.Array, t) -> jax.Array:
 
 def make_evaluate_multiagent(env, eval_params, agent, num_episodes: int):
     """``evaluate(key, agent_state) -> per-episode arrays`` for the multi-agent Intersection
-    (intersection spec §8.8): ``num_episodes`` episodes of ``eval_params.episode_steps`` steps with
+    (docs/carenv-intersection.md §8.8): ``num_episodes`` episodes of ``eval_params.episode_steps`` steps with
     the evaluation cap of vehicles, every episode's env randomness fixed (episode ``i`` uses the key
     ``fold_in(PRNGKey(0), i)``, the analogue of the reference's ``reset(seed=i)``), the policy's own
     randomness (XSAC samples) from ``key``. Per episode: the return summed over all agents, and the
@@ -173,7 +173,7 @@ def make_evaluate_multiagent(env, eval_params, agent, num_episodes: int):
 
 def summarize_episodes(episodes: dict[str, Any]) -> dict[str, Any]:
     """The §6.1 averages of one seed's evaluation, plus the per-episode returns (host side)."""
-    if "trips_completed" in episodes:  # multi-agent: the env's per-episode metrics (spec §8.8)
+    if "trips_completed" in episodes:  # multi-agent: the env's metrics (docs/carenv-intersection.md §8.8)
         out = {f"avg_{k}": float(np.mean(v)) for k, v in episodes.items() if k != "return"}
         returns = np.asarray(episodes["return"], np.float64)
         return {

@@ -1,6 +1,6 @@
 """End-to-end vectorised trainer: the whole SAC loop in one compiled ``lax.scan`` chunk, vmapped over seeds.
 
-Per seed (spec/algorithms.md §5, mapped to synchronous vector envs as §5.8 recommends):
+Per seed (docs/algorithms.md §5, mapped to synchronous vector envs as §5.8 recommends):
 
 * ``num_envs`` = E auto-resetting envs step in lock-step; every vector step collects E transitions;
 * the first ``warmup_steps`` transitions use uniformly random actions and trigger no update;
@@ -40,13 +40,29 @@ from flax import struct
 from xrl_jax import config as agent_config_mod
 from xrl_jax.agents import Agent, AgentState, make_agent
 from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_add_packed, buffer_init, buffer_sample
+from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError
 from xrl_jax.config import ALGOS, AgentConfig
+from xrl_jax.interrupts import RunInterrupted, StopController
+from xrl_jax.resources import backend_summary, disk_free_bytes, format_duration, host_memory_available
+from xrl_jax.run_folder import (
+    RunLock,
+    append_lines,
+    check_history,
+    encode_metric,
+    is_disk_full,
+    remove_leftovers,
+    run_paths,
+    truncate_lines,
+    write_atomic,
+)
 
 ENVS = ("country_road", "tracking", "intersection")
 MULTI_AGENT_ENVS = ("intersection",)
 PRESETS = ("paper", "quick", "smoke")
-EPISODE_WINDOW = 100  # rollout metrics average over the last 100 finished episodes (spec §6.2)
-EARLY_TERMINATION_REWARD = -0.5  # ETR: terminated with a last reward below this (spec §6.1)
+EPISODE_WINDOW = 100  # rollout metrics average over the last 100 finished episodes (§6.2)
+# Settings that only the host loop reads: they change neither the compiled code nor the results.
+HOST_ONLY_FIELDS = ("max_group_size", "memory_budget_gb", "checkpoint_minutes")
+EARLY_TERMINATION_REWARD = -0.5  # ETR: terminated with a last reward below this (§6.1)
 
 
 class ConfigError(ValueError):
@@ -90,7 +106,8 @@ class TrainConfig:
     eval_track_seed: int = 1  # the fixed evaluation tracks, disjoint from the training bank
     reinit_steps: int = 0  # re-initialise the whole agent (not the buffer) every this many steps; 0: never
     max_group_size: int = 0  # 0: as many seeds per group as the memory budget allows
-    memory_budget_gb: float = 0.0  # 0: 90 % of the device's memory (host RAM on CPU)
+    memory_budget_gb: float = 0.0  # 0: 90 % of the device's memory (host RAM on CPU, within any cgroup limit)
+    checkpoint_minutes: float = 30.0  # also checkpoint by wall time (costing at most 2 % of it); 0: off
     agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
 
     def __post_init__(self) -> None:
@@ -179,6 +196,11 @@ def _validate_train(cfg: TrainConfig) -> None:
         raise ConfigError(f"memory_budget_gb must be a number, got {cfg.memory_budget_gb!r}")
     if not (math.isfinite(cfg.memory_budget_gb) and cfg.memory_budget_gb >= 0):
         raise ConfigError(f"memory_budget_gb must be >= 0 (0 = automatic), got {cfg.memory_budget_gb}")
+    minutes = cfg.checkpoint_minutes
+    if isinstance(minutes, bool) or not isinstance(minutes, (int, float)) or not (
+        math.isfinite(minutes) and minutes >= 0
+    ):
+        raise ConfigError(f"checkpoint_minutes must be a number >= 0 (0 = by steps only), got {minutes!r}")
     e = cfg.num_envs
     if cfg.total_steps % e:
         raise ConfigError(f"steps ({cfg.total_steps}) must be a multiple of num_envs ({e})")
@@ -206,7 +228,7 @@ def _preset_train_fields(preset: str, env: str, algo: str) -> dict[str, Any]:
     """Train-loop settings of each preset (the agent part comes from :mod:`xrl_jax.config`)."""
     if env == "intersection":
         return _intersection_train_fields(preset)
-    if preset == "paper":  # spec §5.7: 1e6 steps, buffer 1e6, eval every 1e5 on 100 episodes
+    if preset == "paper":  # §5.7: 1e6 steps, buffer 1e6, eval every 1e5 on 100 episodes
         return {}
     if preset == "quick":  # two Tracking XDSAC seeds: 14 min on a 2-core CPU (measured)
         return {
@@ -233,9 +255,9 @@ def _preset_train_fields(preset: str, env: str, algo: str) -> dict[str, Any]:
 
 
 def _intersection_train_fields(preset: str) -> dict[str, Any]:
-    """Intersection (spec carenv-intersection.md §8): steps are multi-agent env steps; every alive
+    """Intersection (docs/carenv-intersection.md §8): steps are multi-agent env steps; every alive
     agent's transition is stored and followed by one update. Paper: the released configs' values."""
-    if preset == "paper":  # §8.7 "released configs" column; 2 envs as the reference's 2 workers
+    if preset == "paper":  # docs/carenv-intersection.md §8.7 (released configs); 2 envs = its 2 workers
         return {
             "total_steps": 5_000_000,
             "num_envs": 2,
@@ -453,7 +475,7 @@ def cached_track_bank(seed: int, size: int):
 
 def make_envs(cfg: TrainConfig):
     """``(env, train_params, eval_params)``: the training bank and the fixed evaluation tracks
-    (Intersection: the curriculum for training, always 8 vehicles for evaluation, spec §8.8)."""
+    (Intersection: curriculum for training, 8 vehicles for evaluation, docs/carenv-intersection.md §8.8)."""
     import envs
 
     if cfg.multi_agent:
@@ -522,18 +544,18 @@ def _window_add(window: EpisodeWindow, done, returns, lengths, early, velocity) 
     )
 
 
-def _window_means(window: EpisodeWindow, multi_agent: bool = False) -> dict[str, jax.Array]:
-    """Averages over the window; multi-agent windows hold per-agent episodes (termination or the
-    60 s restart) and the env's mean velocity instead of the track velocity."""
+def _window_means(window: EpisodeWindow, multi_agent: bool = False) -> tuple[dict[str, jax.Array], jax.Array]:
+    """Averages over the window, and whether it holds any episode yet (the averages are 0 until
+    then); multi-agent windows hold per-agent episodes (termination or the 60 s restart) and the
+    env's mean velocity instead of the track velocity."""
     filled = jnp.minimum(window.count, EPISODE_WINDOW)
     mask = jnp.arange(EPISODE_WINDOW) < filled
-    denom = jnp.where(filled > 0, filled, 1)
+    denom = jnp.maximum(filled, 1)
 
     def mean(x):
-        value = jnp.sum(jnp.where(mask, x.astype(jnp.float32), 0.0)) / denom
-        return jnp.where(filled > 0, value, jnp.nan)
+        return jnp.sum(jnp.where(mask, x.astype(jnp.float32), 0.0)) / denom
 
-    return {
+    means = {
         "rollout/avg_episode_return": mean(window.returns),
         "rollout/avg_episode_length": mean(window.lengths),
         "rollout/early_termination_rate": mean(window.early),
@@ -542,6 +564,32 @@ def _window_means(window: EpisodeWindow, multi_agent: bool = False) -> dict[str,
         ),
         "rollout/episodes": window.count,
     }
+    return means, filled > 0
+
+
+def tree_all_finite(tree) -> jax.Array:
+    """True when every floating-point leaf of ``tree`` is finite (one fused reduction)."""
+    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(jnp.result_type(x), jnp.floating)]
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.bool_(True)
+
+
+@struct.dataclass
+class ChunkHealth:
+    """What the host checks after every chunk, per seed, before it trusts the new state."""
+
+    first_nonfinite_step: jax.Array  # transition step of the first non-finite loss; -1: none
+    first_nonfinite_loss: jax.Array  # its index in ``Trainer.loss_names``; -1: none
+    agent_finite: jax.Array  # every parameter and optimiser state of the agent is finite
+
+
+@struct.dataclass
+class ChunkReport:
+    """A chunk's per-seed outputs: metric values, which of them have data yet (an average over no
+    update or no finished episode has none, and is written as null), and the health checks."""
+
+    metrics: dict
+    has_data: dict
+    health: ChunkHealth
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -550,9 +598,11 @@ class Trainer:
 
     * ``init(base_seed, seed_indices) -> RunState`` with a leading seed axis (seed ``i`` of a run
       uses ``fold_in(PRNGKey(base_seed), i)``, so a seed's stream does not depend on its group);
-    * ``chunk(state, start_vector_step) -> (state, metrics)``: ``log_interval`` transitions per seed,
-      the state donated; metrics are per-seed scalars (leading seed axis);
+    * ``chunk(state, start_vector_step) -> (state, ChunkReport)``: ``log_interval`` transitions per
+      seed, the state donated; the report's values are per-seed scalars (leading seed axis);
     * ``evaluate(state) -> (eval_keys, per_episode)``: the §6.1 protocol on the fixed tracks.
+
+    ``loss_names`` are the update's metrics in the order ``ChunkHealth.first_nonfinite_loss`` counts.
     """
 
     config: TrainConfig
@@ -563,6 +613,7 @@ class Trainer:
     init: Any
     chunk: Any
     evaluate: Any
+    loss_names: tuple[str, ...] = ()
 
     def abstract_state(self, num_seeds: int) -> RunState:
         return jax.eval_shape(self.init, jnp.int32(0), jnp.arange(num_seeds, dtype=jnp.int32))
@@ -578,8 +629,7 @@ def get_trainer(cfg: TrainConfig) -> Trainer:
     key = cfg.replace(
         seed=0,
         num_seeds=1,
-        max_group_size=0,
-        memory_budget_gb=0.0,
+        **{name: TrainConfig.__dataclass_fields__[name].default for name in HOST_ONLY_FIELDS},
         eval_interval=cfg.log_interval,
         checkpoint_interval=cfg.log_interval,
         total_steps=cfg.total_steps if cfg.total_steps % cfg.log_interval else cfg.log_interval,
@@ -649,7 +699,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), metric_shapes)
 
     def maybe_reinitialise(agent_state, first_transition, key):
-        """Primacy-bias reset (intersection spec §8.6): a fresh agent (same traced hyper-parameters)
+        """Primacy-bias reset (docs/carenv-intersection.md §8.6): a fresh agent (same traced hyper-parameters)
         whenever a step counted from 1 in this vector step is a multiple of ``reinit_steps``."""
         if not cfg.reinit_steps:
             return agent_state
@@ -733,8 +783,9 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
 
     def multi_agent_step(state: RunState, t):
         """One step of E multi-agent envs: every agent alive at the start of the step acts; its
-        transition is stored (packed) and, after warm-up, followed by one gradient step (intersection
-        spec §8.5: updates = agent transitions, 0..8 per env step, done as an exact ``while_loop``)."""
+        transition is stored (packed) and, after warm-up, followed by one gradient step
+        (docs/carenv-intersection.md §8.5: updates = agent transitions, 0..8 per env step, as an exact
+        ``while_loop``)."""
         key, update_key, agent_state, action, warm_env, step = act_and_step(state, t)
         next_obs, env_state, reward, terminated, truncated, info = step
         acted = info["acted"]
@@ -747,7 +798,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
             jax.tree.map(flat, state.obs),
             flat(action),
             flat(reward),
-            flat(terminated & acted),  # time-limit restarts stay bootstrapped (spec Q8)
+            flat(terminated & acted),  # 60 s restarts stay bootstrapped (docs/carenv-intersection.md §9 Q8)
             jax.tree.map(flat, info["final_obs"]),
             flat(acted),
         )
@@ -809,30 +860,39 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
 
         state, outs = jax.lax.scan(body, state, jnp.arange(cfg.chunk_vector_steps, dtype=jnp.int32))
         updates = jnp.sum(outs["updates"])
-        denom = jnp.maximum(updates, 1)
-        metrics = {
-            f"train/{k}": jnp.where(updates > 0, jnp.sum(v) / denom, jnp.nan)
-            for k, v in outs["metrics"].items()
-        }
+        metrics, has_data = {}, {}
+
+        def average(name, total, count):
+            metrics[name] = total / jnp.maximum(count, 1)
+            has_data[name] = count > 0
+
+        for k, v in outs["metrics"].items():
+            average(f"train/{k}", jnp.sum(v), updates)
         metrics["train/updates"] = state.agent.step
         metrics["train/ent_coef"] = jnp.exp(state.agent.log_alpha)
-        count = jnp.sum(outs["reward_count"])
-        metrics["rollout/avg_step_reward"] = jnp.where(
-            count > 0, jnp.sum(outs["reward_sum"]) / jnp.maximum(count, 1), jnp.nan
-        )
-        metrics.update(_window_means(state.window, multi))
+        average("rollout/avg_step_reward", jnp.sum(outs["reward_sum"]), jnp.sum(outs["reward_count"]))
+        window_means, window_filled = _window_means(state.window, multi)
+        metrics.update(window_means)
+        has_data.update({name: window_filled for name in window_means if name != "rollout/episodes"})
         if multi:
             episodes = jnp.sum(outs["episodes_ended"])
-            per_episode = jnp.maximum(episodes, 1)
             metrics["rollout/env_episodes"] = episodes
-            metrics["rollout/trips_per_episode"] = jnp.where(
-                episodes > 0, jnp.sum(outs["trips"]) / per_episode, jnp.nan
-            )
-            metrics["rollout/early_terminations_per_episode"] = jnp.where(
-                episodes > 0, jnp.sum(outs["early_terminations"]) / per_episode, jnp.nan
-            )
+            average("rollout/trips_per_episode", jnp.sum(outs["trips"]), episodes)
+            average("rollout/early_terminations_per_episode", jnp.sum(outs["early_terminations"]), episodes)
         metrics["buffer/stored_rows"] = state.buffer.filled_rows
-        return state, metrics
+        # The first vector step whose update produced a non-finite loss (and which one), and whether
+        # the agent's parameters and optimiser states are still finite: the host stops on either.
+        bad = jnp.stack([~jnp.isfinite(outs["metrics"][k]) for k in sorted(outs["metrics"])], axis=1)
+        bad_step = jnp.any(bad, axis=1)
+        first = jnp.argmax(bad_step)
+        health = ChunkHealth(
+            first_nonfinite_step=jnp.where(
+                jnp.any(bad_step), (start_vector_step + first + 1) * num_envs, -1
+            ).astype(jnp.int32),
+            first_nonfinite_loss=jnp.where(jnp.any(bad_step), jnp.argmax(bad[first]), -1).astype(jnp.int32),
+            agent_finite=tree_all_finite(state.agent),
+        )
+        return state, ChunkReport(metrics=metrics, has_data=has_data, health=health)
 
     if multi:
         evaluate_one = evaluate_mod.make_evaluate_multiagent(env, eval_params, agent, cfg.eval_episodes)
@@ -852,7 +912,8 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
 
     chunk = jax.jit(jax.vmap(chunk_one, in_axes=(0, None)), donate_argnums=0)
     evaluate = jax.jit(jax.vmap(evaluate_seed))
-    return Trainer(cfg, env, params, eval_params, agent, init, chunk, evaluate)
+    loss_names = tuple(f"train/{k}" for k in sorted(metric_shapes))
+    return Trainer(cfg, env, params, eval_params, agent, init, chunk, evaluate, loss_names)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -866,7 +927,8 @@ def _tree_bytes(tree) -> int:
 
 
 def device_memory_bytes() -> tuple[int, str]:
-    """Usable memory of the default device: the allocator's limit on accelerators, available RAM on CPU."""
+    """Usable memory of the default device: the allocator's limit on accelerators; on CPU the
+    available RAM, or less where a container's memory limit leaves less."""
     device = jax.devices()[0]
     try:
         stats = device.memory_stats() or {}
@@ -874,9 +936,7 @@ def device_memory_bytes() -> tuple[int, str]:
         stats = {}
     if stats.get("bytes_limit"):
         return int(stats["bytes_limit"]), f"{device.device_kind} memory"
-    import psutil
-
-    return int(psutil.virtual_memory().available), "available host RAM"
+    return host_memory_available()
 
 
 def estimate_seed_bytes(trainer: Trainer) -> dict[str, int]:
@@ -942,56 +1002,26 @@ def plan_memory(
 # ------------------------------------------------------------------------------------------------
 
 
+class DivergenceError(RuntimeError):
+    """A seed produced a non-finite loss or parameter; the message (one line) names the seed, the
+    step and the quantity, and what was kept."""
+
+
+class DiskFullError(RuntimeError):
+    """The disk filled up while the run wrote its results; the last committed checkpoint is intact."""
+
+
+CHECKPOINT_TIME_SHARE = 0.02  # time-based checkpoints never take more than this share of the run
+LONG_RUN_S = 86_400.0  # estimates above a day come with a warning and the faster alternatives
+
+
 def config_fingerprint(cfg: TrainConfig) -> str:
-    """A hash of every setting that shapes the run's results (not the host-only memory settings);
-    stored with each checkpoint so that a resume never continues another configuration's state."""
+    """A hash of every setting that shapes the run's results (not the host-only settings); stored
+    with each checkpoint so that a resume never continues another configuration's state."""
     fields = cfg.to_dict()
-    for host_only in ("max_group_size", "memory_budget_gb"):
+    for host_only in HOST_ONLY_FIELDS:
         fields.pop(host_only)
     return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def _jsonable(value):
-    value = np.asarray(value)
-    if value.ndim:
-        return [_jsonable(v) for v in value]
-    item = value.item()
-    if isinstance(item, float) and not math.isfinite(item):
-        return None
-    return item
-
-
-def _append_lines(path: Path, rows: list[dict]) -> None:
-    """Append JSON lines and force them to disk (a crash loses at most the line being written)."""
-    with open(path, "a") as f:
-        for row in rows:
-            f.write(json.dumps(row, sort_keys=True) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
-
-
-def _truncate_lines(path: Path, max_step: int) -> None:
-    """Keep only complete lines with ``step <= max_step`` (atomic rewrite), for a resumed run."""
-    if not path.exists():
-        return
-    kept = []
-    for line in path.read_text().splitlines():
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            continue  # a line cut by a crash
-        if row.get("step", 0) <= max_step:
-            kept.append(line)
-    write_atomic(path, "".join(line + "\n" for line in kept))
-
-
-def write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _progress_bar(total: int, initial: int, enabled: bool):
@@ -1004,16 +1034,127 @@ def _progress_bar(total: int, initial: int, enabled: bool):
     )
 
 
-def run_paths(out: Path) -> dict[str, Path]:
-    return {
-        "config": out / "config.json",
-        "metrics": out / "metrics",
-        "eval": out / "eval",
-        "checkpoints": out / "checkpoints",
-        "summary": out / "summary.json",
-        "curve": out / "learning_curve.png",
-        "timing": out / "timing.jsonl",
-    }
+def _metric_lines(step: int, seeds: list[int], report: ChunkReport) -> list[tuple[int, dict]]:
+    """One metrics line per seed: ``null`` where an average has no data yet, non-finite values as
+    the strings "nan"/"inf"/"-inf" (see :func:`xrl_jax.run_folder.encode_metric`)."""
+    lines = []
+    for row, seed in enumerate(seeds):
+        line = {"step": step, "seed": seed}
+        for name, values in report.metrics.items():
+            present = report.has_data.get(name)
+            line[name] = encode_metric(values[row]) if present is None or present[row] else None
+        lines.append((seed, line))
+    return lines
+
+
+def _first_nonfinite_leaf(tree) -> str:
+    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        leaf = np.asarray(leaf)
+        if np.issubdtype(leaf.dtype, np.floating) and not np.all(np.isfinite(leaf)):
+            return jax.tree_util.keystr(path)
+    return "(none found)"
+
+
+def divergence_message(
+    report: ChunkReport, seeds: list[int], chunk_end: int, loss_names: tuple[str, ...], agent_of_row
+) -> str | None:
+    """None when every seed of the chunk is healthy, else one line naming the first seed to go
+    non-finite, the step and the quantity (``agent_of_row(row)`` gives that seed's agent state)."""
+    health = report.health
+    loss_step = np.asarray(health.first_nonfinite_step)
+    bad_rows = [r for r in range(len(seeds)) if loss_step[r] >= 0 or not health.agent_finite[r]]
+    if not bad_rows:
+        return None
+    first_step = {r: int(loss_step[r]) if loss_step[r] >= 0 else chunk_end for r in bad_rows}
+    row = min(bad_rows, key=lambda r: (first_step[r], r))
+    if loss_step[row] >= 0:
+        name = loss_names[int(health.first_nonfinite_loss[row])]
+        what = f"the loss {name} became non-finite"
+    else:
+        what = f"the agent's {_first_nonfinite_leaf(agent_of_row(row))} became non-finite"
+    others = len(bad_rows) - 1
+    also = f" ({others} other seed{'s' if others > 1 else ''} too)" if others else ""
+    return f"seed {seeds[row]} diverged at step {first_step[row]}{also}: {what}"
+
+
+def _expected_rows(cfg: TrainConfig, next_chunk: int) -> tuple[list[int], list[int]]:
+    """The metric and evaluation steps a seed's files must hold when ``next_chunk`` chunks are done."""
+    ends = [cfg.chunk_end_step(c) for c in range(next_chunk)]
+    evals = [s for s in ends if s % cfg.eval_interval == 0 or s == cfg.total_steps]
+    return ends, evals
+
+
+class _RunClock:
+    """Wall-time bookkeeping of the host loop: time-based checkpoints and the run's cost estimate."""
+
+    def __init__(self, cfg: TrainConfig, num_groups: int):
+        self.cfg = cfg
+        self.num_groups = num_groups
+        self.last_save = time.monotonic()
+        self.save_s: float | None = None  # the last checkpoint's duration
+        self.eval_s: float | None = None  # the last evaluation's duration
+        self.chunk_s: float | None = None  # a chunk's duration with an update per transition
+        self.estimated = False
+
+    def saved(self, seconds: float) -> None:
+        self.save_s = seconds
+        self.last_save = time.monotonic()
+
+    def checkpoint_due_by_time(self) -> bool:
+        minutes = self.cfg.checkpoint_minutes
+        if not minutes:
+            return False
+        interval = max(60.0 * minutes, (self.save_s or 0.0) / CHECKPOINT_TIME_SHARE)
+        return time.monotonic() - self.last_save >= interval
+
+    def expected_chunk_s(self) -> float | None:
+        """How long the next chunk and a checkpoint after it should take (None until measured)."""
+        if self.chunk_s is None:
+            return None
+        return self.chunk_s + (self.save_s or 0.0)
+
+    def observe_chunk(self, chunk_index: int, seconds: float) -> None:
+        """Learn a chunk's cost from the first one in which at least half the transitions update
+        (updates dominate; scaled up to a chunk that updates on every transition)."""
+        if self.chunk_s is not None:
+            return
+        cfg = self.cfg
+        first = chunk_index * cfg.log_interval
+        last = cfg.chunk_end_step(chunk_index)
+        updating = max(last - max(first, cfg.warmup_steps), 0)
+        if updating * 2 >= last - first:
+            self.chunk_s = seconds * (last - first) / updating
+
+    def remaining_s(self, group_index: int, next_chunk: int) -> float | None:
+        """Time left for the whole run (chunks, evaluations, step-interval checkpoints)."""
+        if self.chunk_s is None:
+            return None
+        cfg = self.cfg
+        chunks = (cfg.num_chunks - next_chunk) + (self.num_groups - group_index - 1) * cfg.num_chunks
+        ends = [cfg.chunk_end_step(c) for c in range(next_chunk, cfg.num_chunks)]
+        later = (self.num_groups - group_index - 1) * [cfg.chunk_end_step(c) for c in range(cfg.num_chunks)]
+        evals = sum(1 for s in ends + later if s % cfg.eval_interval == 0 or s == cfg.total_steps)
+        saves = sum(1 for s in ends + later if s % cfg.checkpoint_interval == 0 or s == cfg.total_steps)
+        return chunks * self.chunk_s + evals * (self.eval_s or 0.0) + saves * (self.save_s or 0.0)
+
+
+def _cost_lines(cfg: TrainConfig, elapsed_s: float, remaining_s: float, backend: str) -> list[str]:
+    """The estimate of the whole run's time, with a warning and the alternatives beyond a day."""
+    total = elapsed_s + remaining_s
+    steps = cfg.num_seeds * cfg.total_steps
+    finish = time.strftime("%a %H:%M", time.localtime(time.time() + remaining_s))
+    lines = [
+        f"estimate: the whole run ({cfg.num_seeds} seed(s) x {cfg.total_steps:,} steps) takes "
+        f"~{format_duration(total)} on {backend} ({steps / max(total, 1e-9):,.0f} steps/s); "
+        f"done around {finish}"
+    ]
+    if total > LONG_RUN_S:
+        lines.append(
+            f"warning: this run needs ~{format_duration(total)}; for a result today use --preset quick "
+            "(two Tracking XDSAC seeds take ~14 min on a 2-core CPU), fewer --seeds or --steps, or a GPU "
+            "(pip install -e '.[cuda]'). Stop with Ctrl-C; --resume continues from the last checkpoint."
+        )
+    return lines
 
 
 def train(
@@ -1025,149 +1166,292 @@ def train(
     log=print,
     trainer: Trainer | None = None,
     stop_after_chunks: int | None = None,
+    stop: StopController | None = None,
 ) -> dict[str, Any] | None:
     """Run (or continue) the whole experiment into ``out``; returns the summary.
 
     Writes (``config.json`` is the caller's, see :func:`xrl_jax.evaluate.config_document`):
     ``plan.json`` (memory plan and seed groups), per seed ``metrics/seed_<i>.jsonl`` (one line per
-    chunk) and ``eval/seed_<i>.jsonl`` (one line per evaluation), per group ``checkpoints/group_<g>``,
-    ``timing.jsonl`` and at the end ``summary.json``. Lines written after the newest checkpoint are
-    dropped on resume and recomputed, so a resumed run's files equal an uninterrupted run's.
+    chunk) and ``eval/seed_<i>.jsonl`` (one line per evaluation), per group ``checkpoints/group_<g>``
+    (the newest two, verified on restore), ``timing.jsonl`` and at the end ``summary.json``. Lines
+    written after the newest checkpoint are dropped on resume and recomputed, so a resumed run's
+    files equal an uninterrupted run's.
+
+    The folder is locked for the duration (:class:`~xrl_jax.run_folder.RunLock`). Checkpoints are
+    written every ``checkpoint_interval`` steps and every ``checkpoint_minutes`` of wall time, never
+    after a chunk in which a seed went non-finite: that raises :class:`DivergenceError` with the
+    last good checkpoint kept. ``stop`` (installed by the CLI) turns SIGINT/SIGTERM into a stop at a
+    chunk boundary with a checkpoint, raising :class:`~xrl_jax.interrupts.RunInterrupted`.
     ``stop_after_chunks`` stops (returning None) after that many chunks of this session, as an
-    interruption would; ``resume=True`` continues from the newest checkpoint of each group.
+    interruption would; ``resume=True`` continues from the newest good checkpoint of each group.
     """
-    from xrl_jax import evaluate as evaluate_mod
-    from xrl_jax.checkpoint import Checkpointer
-
     out = Path(out)
-    paths = run_paths(out)
-    for key in ("metrics", "eval", "checkpoints"):
-        paths[key].mkdir(parents=True, exist_ok=True)
-    start_time = time.perf_counter()
-    if trainer is None:
-        trainer = get_trainer(cfg)
-    plan = plan_memory(trainer, cfg)
-    plan_path = out / "plan.json"
-    if resume and plan_path.exists():  # keep the grouping the checkpoints were made with
-        plan["groups"] = json.loads(plan_path.read_text())["groups"]
-    else:
-        write_atomic(plan_path, json.dumps(plan, indent=2, sort_keys=True) + "\n")
-    groups = plan["groups"]
-    per_seed = plan["per_seed_bytes"]
-    log(
-        f"memory: ~{per_seed['total'] / 1e9:.3f} GB per seed (buffer {per_seed['buffer'] / 1e9:.3f} GB), "
-        f"budget {plan['budget_bytes'] / 1e9:.1f} GB ({plan['budget_source']})"
-    )
-    if len(groups) > 1:
-        log(f"memory: {cfg.num_seeds} seeds do not fit at once; running {len(groups)} groups of up to "
-            f"{len(groups[0])} seeds one after another")  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    with RunLock(out):
+        remove_leftovers(out)
+        try:
+            return _HostLoop(cfg, out, trainer, log, progress, stop).run(resume, stop_after_chunks)
+        except OSError as err:
+            if not is_disk_full(err):
+                raise
+            raise DiskFullError(
+                f"the disk of {out} is full ({err.strerror or err}); committed checkpoints are intact: "
+                f"free some space and continue with --resume {out}"
+            ) from None
 
-    fingerprint = config_fingerprint(cfg)
-    total = cfg.total_steps * cfg.num_seeds
-    done_steps = 0
-    timing = {"compile_s": 0.0, "train_s": 0.0, "eval_s": 0.0, "checkpoint_s": 0.0, "env_steps": 0}
-    bar = None
-    chunks_run = 0
-    for group_index, seeds in enumerate(groups):
+
+class _StopAfterChunks(Exception):
+    pass
+
+
+class _HostLoop:
+    """The host side of :func:`train`: seed groups one after another, chunk after chunk, and
+    between chunks the metric lines, the health check, evaluation and checkpoints."""
+
+    def __init__(self, cfg: TrainConfig, out: Path, trainer: Trainer | None, log, progress: bool, stop):
+        self.cfg, self.out, self.log, self.stop = cfg, out, log, stop
+        self.paths = run_paths(out)
+        for key in ("metrics", "eval", "checkpoints"):
+            self.paths[key].mkdir(parents=True, exist_ok=True)
+        self.start_time = time.perf_counter()
+        if stop is not None:
+            stop.idle()
+        self.trainer = get_trainer(cfg) if trainer is None else trainer
+        self.progress = progress
+        self.bar = None
+        self.timing = {"compile_s": 0.0, "train_s": 0.0, "eval_s": 0.0, "checkpoint_s": 0.0, "env_steps": 0}
+        self.fingerprint = config_fingerprint(cfg)
+        self.chunks_left: int | None = None
+
+    # ---- the run ------------------------------------------------------------------------------
+    def run(self, resume: bool, stop_after_chunks: int | None) -> dict[str, Any] | None:
+        self.chunks_left = stop_after_chunks
+        self.plan = self._plan(resume)
+        self.groups = self.plan["groups"]
+        self.clock = _RunClock(self.cfg, len(self.groups))
+        self.done_steps = 0
+        try:
+            for group_index, seeds in enumerate(self.groups):
+                self._run_group(group_index, seeds, resume)
+        except _StopAfterChunks:
+            return None
+        finally:
+            if self.bar is not None:
+                self.bar.close()
+        if self.stop is not None:
+            self.stop.idle()
+        return self._summarise()
+
+    def _plan(self, resume: bool) -> dict[str, Any]:
+        cfg, paths, log = self.cfg, self.paths, self.log
+        plan = plan_memory(self.trainer, cfg)
+        if resume and paths["plan"].exists():  # keep the grouping the checkpoints were made with
+            plan["groups"] = json.loads(paths["plan"].read_text())["groups"]
+        else:
+            write_atomic(paths["plan"], json.dumps(plan, indent=2, sort_keys=True) + "\n")
+        groups, per_seed = plan["groups"], plan["per_seed_bytes"]
+        self.backend = backend_summary()
+        log(f"backend: {self.backend}")
+        log(
+            f"memory: ~{per_seed['total'] / 1e9:.3f} GB per seed (buffer {per_seed['buffer'] / 1e9:.3f} GB), "
+            f"budget {plan['budget_bytes'] / 1e9:.1f} GB ({plan['budget_source']})"
+        )
+        if len(groups) > 1:
+            log(f"memory: {cfg.num_seeds} seeds do not fit at once; running {len(groups)} groups of up to "
+                f"{len(groups[0])} seeds one after another")  # fmt: skip
+        # Two checkpoints kept per group, plus the one being written.
+        needed = 3 * len(groups[0]) * (per_seed["buffer"] + per_seed["agent"] + per_seed["env"])
+        free = disk_free_bytes(self.out)
+        if free < needed:
+            log(f"warning: {free / 1e9:.1f} GB free on the disk of {self.out}, but the checkpoints of a "
+                f"seed group need up to {needed / 1e9:.1f} GB")  # fmt: skip
+        return plan
+
+    def _kept(self, step: int, group_index: int) -> str:
+        """What a resume would continue from, in words."""
+        where = f" (seed group {group_index + 1} of {len(self.groups)})" if len(self.groups) > 1 else ""
+        if step <= 0:
+            return f"nothing has been checkpointed yet{where}"
+        return f"the checkpoint at step {step:,} of {self.cfg.total_steps:,} per seed is kept{where}"
+
+    def _run_group(self, group_index: int, seeds: list[int], resume: bool) -> None:
+        cfg, paths, trainer = self.cfg, self.paths, self.trainer
         ckpt = Checkpointer(paths["checkpoints"] / f"group_{group_index}")
-        seed_array = jnp.asarray(seeds, jnp.int32)
-        next_chunk = 0
-        state = None
-        if resume and ckpt.latest_step() is not None:
-            meta = ckpt.metadata()
-            if meta.get("config", fingerprint) != fingerprint:
-                raise ConfigError(
-                    f"checkpoint group {group_index} in {paths['checkpoints']} was written by another "
-                    "configuration than config.json describes; start a new run with --out"
-                )
-            if meta.get("seeds") != seeds:
-                raise ConfigError(
-                    f"checkpoint group {group_index} holds seeds {meta.get('seeds')}, expected {seeds}"
-                )
-            state, meta = ckpt.restore(trainer.abstract_state(len(seeds)))
-            next_chunk = int(meta["next_chunk"])
-        resumed_step = cfg.chunk_end_step(next_chunk - 1) if next_chunk else 0
-        for seed in seeds:  # drop anything written after the checkpoint (or everything, when fresh)
-            _truncate_lines(paths["metrics"] / f"seed_{seed}.jsonl", resumed_step)
-            _truncate_lines(paths["eval"] / f"seed_{seed}.jsonl", resumed_step)
-        done_steps += resumed_step * len(seeds)
-        if next_chunk >= cfg.num_chunks:
-            ckpt.close()
-            continue
-        if state is None:
-            state = trainer.init(jnp.asarray(cfg.seed, jnp.int32), seed_array)
-        # Committed to the device like a restored state, so both hit the same compiled chunk.
-        state = jax.device_put(state, jax.devices()[0])
-        if bar is None:
-            bar = _progress_bar(total, done_steps, progress)
-        latest_return = float("nan")
-        for chunk_index in range(next_chunk, cfg.num_chunks):
-            if stop_after_chunks is not None and chunks_run >= stop_after_chunks:
-                if bar is not None:
-                    bar.close()
-                ckpt.close()
-                return None
-            chunks_run += 1
-            tic = time.perf_counter()
-            state, metrics = trainer.chunk(
-                state, jnp.asarray(chunk_index * cfg.chunk_vector_steps, jnp.int32)
+        try:
+            state, next_chunk = _restore_group(
+                cfg, trainer, ckpt, seeds, group_index, self.fingerprint, resume, self.log
             )
-            metrics = jax.device_get(metrics)
-            elapsed = time.perf_counter() - tic
-            step = cfg.chunk_end_step(chunk_index)
-            collected = (step - (cfg.chunk_end_step(chunk_index - 1) if chunk_index else 0)) * len(seeds)
-            if chunk_index == next_chunk:
-                timing["compile_s"] += elapsed  # the first call of a group includes compilation
-            else:
-                timing["train_s"] += elapsed
-                timing["env_steps"] += collected
-            for row, seed in enumerate(seeds):
-                line = {"step": step, "seed": seed, **{k: _jsonable(v[row]) for k, v in metrics.items()}}
-                _append_lines(paths["metrics"] / f"seed_{seed}.jsonl", [line])
-            returns = np.asarray(metrics["rollout/avg_episode_return"])
-            if np.any(np.isfinite(returns)):
-                latest_return = float(np.nanmean(returns))
-            if step % cfg.eval_interval == 0 or step == cfg.total_steps:
-                tic = time.perf_counter()
-                eval_keys, episodes = trainer.evaluate(state)
-                state = state.replace(eval_key=eval_keys)
-                episodes = jax.device_get(episodes)
-                timing["eval_s"] += time.perf_counter() - tic
-                for row, seed in enumerate(seeds):
-                    per_episode = jax.tree.map(lambda x, r=row: np.asarray(x[r]), episodes)
-                    line = {"step": step, "seed": seed, **evaluate_mod.summarize_episodes(per_episode)}
-                    _append_lines(paths["eval"] / f"seed_{seed}.jsonl", [line])
-            if step % cfg.checkpoint_interval == 0 or step == cfg.total_steps:
-                tic = time.perf_counter()
-                meta = {"next_chunk": chunk_index + 1, "seeds": seeds, "step": step, "config": fingerprint}
-                ckpt.save(step, state, meta)
-                timing["checkpoint_s"] += time.perf_counter() - tic
-            done_steps += collected
-            if bar is not None:
-                bar.set_postfix_str(
-                    f"group {group_index + 1}/{len(groups)} return {latest_return:.2f}", refresh=False
-                )
-                bar.update(collected)
-            _append_lines(paths["timing"], [{"group": group_index, "step": step, "seconds": elapsed}])
-        ckpt.close()
-        del state
-    if bar is not None:
-        bar.close()
-    timing["wall_s"] = time.perf_counter() - start_time
-    timing["env_steps_per_s"] = timing["env_steps"] / timing["train_s"] if timing["train_s"] > 0 else None
-    summary = evaluate_mod.summarize_run(out, cfg)
-    summary["timing_this_session"] = timing
-    summary["memory_plan"] = {k: v for k, v in plan.items() if k != "groups"} | {"groups": len(groups)}
-    write_atomic(paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
-    if summary["curve"]:
-        evaluate_mod.plot_learning_curve(summary, paths["curve"])
-    return summary
+            saved_step = cfg.chunk_end_step(next_chunk - 1) if next_chunk else 0
+            metric_steps, eval_steps = _expected_rows(cfg, next_chunk)
+            for seed in seeds:  # what the checkpoint continues must still be on disk
+                check_history(paths["metrics"] / f"seed_{seed}.jsonl", metric_steps, "metric")
+                check_history(paths["eval"] / f"seed_{seed}.jsonl", eval_steps, "evaluation")
+            for seed in seeds:  # drop anything written after the checkpoint (or everything, when fresh)
+                truncate_lines(paths["metrics"] / f"seed_{seed}.jsonl", saved_step)
+                truncate_lines(paths["eval"] / f"seed_{seed}.jsonl", saved_step)
+            self.done_steps += saved_step * len(seeds)
+            if self.stop is not None:
+                self.stop.keep(self._kept(saved_step, group_index))
+            if next_chunk >= cfg.num_chunks:
+                return
+            if state is None:
+                state = trainer.init(jnp.asarray(cfg.seed, jnp.int32), jnp.asarray(seeds, jnp.int32))
+            # Committed to the device like a restored state, so both hit the same compiled chunk.
+            state = jax.device_put(state, jax.devices()[0])
+            self._compile(state, next_chunk)
+            if self.bar is None:
+                self.bar = _progress_bar(cfg.total_steps * cfg.num_seeds, self.done_steps, self.progress)
+            self.clock.last_save = time.monotonic()
+            for chunk_index in range(next_chunk, cfg.num_chunks):
+                state, saved_step = self._chunk(state, ckpt, group_index, seeds, chunk_index, saved_step)
+        finally:
+            ckpt.close()
+
+    def _compile(self, state: RunState, next_chunk: int) -> None:
+        """Compile the chunk ahead of its first call, so that chunk timings are execution alone."""
+        tic = time.perf_counter()
+        self.log("compiling the training chunk ...")
+        start = jnp.asarray(next_chunk * self.cfg.chunk_vector_steps, jnp.int32)
+        self.trainer.chunk.lower(state, start).compile()  # jit reuses this executable
+        seconds = time.perf_counter() - tic
+        self.timing["compile_s"] += seconds
+        self.log(f"compiled in {seconds:.0f} s")
+
+    def _chunk(self, state, ckpt, group_index, seeds, chunk_index, saved_step) -> tuple[RunState, int]:
+        """Run one chunk and everything the host does after it; returns the state and the newest
+        checkpointed step."""
+        cfg, paths, stop, clock = self.cfg, self.paths, self.stop, self.clock
+        if self.chunks_left is not None:
+            if self.chunks_left <= 0:
+                raise _StopAfterChunks
+            self.chunks_left -= 1
+        if stop is not None:
+            stop.training(clock.expected_chunk_s())
+        tic = time.perf_counter()
+        start = jnp.asarray(chunk_index * cfg.chunk_vector_steps, jnp.int32)
+        state, report = self.trainer.chunk(state, start)
+        report = jax.device_get(report)
+        elapsed = time.perf_counter() - tic
+        if stop is not None:  # the host work until the next chunk: short, and known once measured
+            stop.training((clock.eval_s or 0.0) + (clock.save_s or 0.0))
+        step = cfg.chunk_end_step(chunk_index)
+        collected = (step - (cfg.chunk_end_step(chunk_index - 1) if chunk_index else 0)) * len(seeds)
+        self.timing["train_s"] += elapsed
+        self.timing["env_steps"] += collected
+        for seed, line in _metric_lines(step, seeds, report):
+            append_lines(paths["metrics"] / f"seed_{seed}.jsonl", [line])
+        def agent_of_row(row):
+            return jax.tree.map(lambda x: x[row], state.agent)
+
+        diverged = divergence_message(report, seeds, step, self.trainer.loss_names, agent_of_row)
+        if diverged:
+            raise DivergenceError(
+                f"{diverged}; stopped, and {self._kept(saved_step, group_index)} (resuming would diverge "
+                "again: start a new run with other settings, e.g. lower actor_lr and critic_lr)"
+            )
+        if step % cfg.eval_interval == 0 or step == cfg.total_steps:
+            state = self._evaluate(state, seeds, step)
+        due = step % cfg.checkpoint_interval == 0 or step == cfg.total_steps or clock.checkpoint_due_by_time()
+        if due or (stop is not None and stop.requested is not None):
+            saved_step = self._save(ckpt, state, seeds, chunk_index, step, group_index)
+        if stop is not None and stop.requested is not None and saved_step != step:
+            # the signal arrived during the evaluation or the save
+            saved_step = self._save(ckpt, state, seeds, chunk_index, step, group_index)
+        self.done_steps += collected
+        if self.bar is not None:
+            name = "rollout/avg_episode_return"
+            returns = np.where(report.has_data[name], report.metrics[name], np.nan)
+            shown = f" return {np.nanmean(returns):.2f}" if np.any(np.isfinite(returns)) else ""
+            self.bar.set_postfix_str(f"group {group_index + 1}/{len(self.groups)}{shown}", refresh=False)
+            self.bar.update(collected)
+        append_lines(paths["timing"], [{"group": group_index, "step": step, "seconds": elapsed}])
+        if stop is not None and stop.requested is not None:
+            raise RunInterrupted(stop.requested, self._kept(saved_step, group_index))
+        clock.observe_chunk(chunk_index, elapsed)
+        if not clock.estimated and clock.chunk_s is not None:
+            clock.estimated = True
+            remaining = clock.remaining_s(group_index, chunk_index + 1)
+            for line in _cost_lines(cfg, time.perf_counter() - self.start_time, remaining, self.backend):
+                self.log(line)
+        return state, saved_step
+
+    def _evaluate(self, state: RunState, seeds: list[int], step: int) -> RunState:
+        from xrl_jax import evaluate as evaluate_mod
+
+        tic = time.perf_counter()
+        eval_keys, episodes = self.trainer.evaluate(state)
+        state = state.replace(eval_key=eval_keys)
+        episodes = jax.device_get(episodes)
+        self.clock.eval_s = time.perf_counter() - tic
+        self.timing["eval_s"] += self.clock.eval_s
+        for row, seed in enumerate(seeds):
+            per_episode = jax.tree.map(lambda x, r=row: np.asarray(x[r]), episodes)
+            line = {"step": step, "seed": seed, **evaluate_mod.summarize_episodes(per_episode)}
+            append_lines(self.paths["eval"] / f"seed_{seed}.jsonl", [line])
+        return state
+
+    def _save(self, ckpt, state, seeds, chunk_index: int, step: int, group_index: int) -> int:
+        tic = time.perf_counter()
+        meta = {"next_chunk": chunk_index + 1, "seeds": seeds, "step": step, "config": self.fingerprint}
+        ckpt.save(step, state, meta)
+        self.clock.saved(time.perf_counter() - tic)
+        self.timing["checkpoint_s"] += self.clock.save_s
+        if self.stop is not None:
+            self.stop.keep(self._kept(step, group_index))
+        return step
+
+    def _summarise(self) -> dict[str, Any]:
+        from xrl_jax import evaluate as evaluate_mod
+
+        timing = self.timing
+        timing["wall_s"] = time.perf_counter() - self.start_time
+        timing["env_steps_per_s"] = timing["env_steps"] / timing["train_s"] if timing["train_s"] > 0 else None
+        summary = evaluate_mod.summarize_run(self.out, self.cfg)
+        summary["timing_this_session"] = timing
+        summary["memory_plan"] = {k: v for k, v in self.plan.items() if k != "groups"} | {
+            "groups": len(self.groups)
+        }
+        write_atomic(self.paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
+        if summary["curve"]:
+            evaluate_mod.plot_learning_curve(summary, self.paths["curve"])
+        return summary
+
+
+def _restore_group(cfg, trainer, ckpt, seeds, group_index, fingerprint, resume, log):
+    """``(state or None, next_chunk)`` of a seed group: its newest good checkpoint when resuming."""
+    if not resume or ckpt.latest_step() is None:
+        return None, 0
+    try:
+        meta = ckpt.metadata()
+    except CorruptCheckpointError:
+        meta = None  # a damaged newest checkpoint: restore_newest_good reports it and falls back
+    if meta is not None and meta.get("config", fingerprint) != fingerprint:
+        raise ConfigError(
+            f"checkpoint group {group_index} in {ckpt.directory.parent} was written by another "
+            "configuration than config.json describes; start a new run with --out"
+        )
+    if meta is not None and meta.get("seeds") != seeds:
+        raise ConfigError(f"checkpoint group {group_index} holds seeds {meta.get('seeds')}, expected {seeds}")
+
+    def check(state, meta) -> str | None:
+        if meta.get("config") != fingerprint or meta.get("seeds") != seeds:
+            return "it belongs to another configuration or seed group"
+        if not bool(tree_all_finite(state.agent)):
+            return f"the agent's {_first_nonfinite_leaf(state.agent)} is not finite"
+        return None
+
+    state, meta = ckpt.restore_newest_good(trainer.abstract_state(len(seeds)), check, log)
+    log(f"resuming seed group {group_index + 1} from its checkpoint at step {meta['step']:,}")
+    return state, int(meta["next_chunk"])
 
 
 __all__ = [
     "ENVS",
     "PRESETS",
+    "ChunkReport",
     "ConfigError",
+    "DiskFullError",
+    "DivergenceError",
     "MemoryPlanError",
     "RunState",
     "TrainConfig",

@@ -1,0 +1,244 @@
+"""The results folder of a run: its layout, crash-safe writes, the writer's lock, and the checks a
+resume makes before it continues what is there.
+
+Every file is written so that a crash at any moment loses at most the line being written: JSON
+lines are appended and forced to disk, whole documents are replaced atomically. One process writes
+into a folder at a time (an ``flock`` on ``.lock``, which the kernel releases when the holder dies,
+so a lock left by a killed run never blocks the next one).
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import math
+import os
+import socket
+import time
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+LOCK_NAME = ".lock"
+TEMP_MARK = ".tmp"  # ``.<name>.tmp<pid>``: what write_atomic leaves behind when it is killed mid-write
+
+
+class RunFolderError(RuntimeError):
+    """A results folder cannot be used as asked; the message is one line and says what to do."""
+
+
+def run_paths(out: Path) -> dict[str, Path]:
+    return {
+        "config": out / "config.json",
+        "plan": out / "plan.json",
+        "metrics": out / "metrics",
+        "eval": out / "eval",
+        "checkpoints": out / "checkpoints",
+        "summary": out / "summary.json",
+        "curve": out / "learning_curve.png",
+        "timing": out / "timing.jsonl",
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# Writing
+# ------------------------------------------------------------------------------------------------
+
+
+def encode_metric(value) -> Any:
+    """A metric as JSON: numbers as they are, non-finite floats as the strings ``"nan"``, ``"inf"``
+    and ``"-inf"`` (JSON has no such numbers). ``None`` is kept for "no data yet", so the two never
+    read alike. Arrays become nested lists."""
+    value = np.asarray(value)
+    if value.ndim:
+        return [encode_metric(v) for v in value]
+    item = value.item()
+    if isinstance(item, float) and not math.isfinite(item):
+        return "nan" if math.isnan(item) else ("inf" if item > 0 else "-inf")
+    return item
+
+
+def append_lines(path: Path, rows: list[dict]) -> None:
+    """Append JSON lines and force them to disk (a crash loses at most the line being written)."""
+    with open(path, "a") as f:
+        for row in rows:
+            f.write(json.dumps(row, sort_keys=True) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Replace ``path`` by ``text`` all at once: readers see the old or the new file, never a part."""
+    tmp = path.with_name(f".{path.name}{TEMP_MARK}{os.getpid()}")
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_rows(path: Path) -> list[dict]:
+    """The complete JSON lines of ``path`` (a line cut by a crash is skipped)."""
+    if not path.exists():
+        return []
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(row, dict):
+            rows.append(row)
+    return rows
+
+
+def truncate_lines(path: Path, max_step: int) -> None:
+    """Keep only complete lines with ``step <= max_step`` (atomic rewrite), for a resumed run."""
+    if not path.exists():
+        return
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # a line cut by a crash
+        if isinstance(row, dict) and row.get("step", 0) <= max_step:
+            kept.append(line)
+    write_atomic(path, "".join(line + "\n" for line in kept))
+
+
+def is_disk_full(error: BaseException) -> bool:
+    """Whether ``error`` (or what caused it, as orbax wraps it) is a full disk or an exceeded quota."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if "No space left on device" in str(error) or "Disk quota exceeded" in str(error):
+            return True
+        error = error.__cause__ or error.__context__
+    return False
+
+
+# ------------------------------------------------------------------------------------------------
+# One writer per folder
+# ------------------------------------------------------------------------------------------------
+
+
+class RunLock:
+    """An exclusive, non-blocking lock on a results folder for the lifetime of one run.
+
+    ``flock`` is tied to the open file: the kernel drops it when the process exits or is killed, so
+    a stale lock file (a holder that died) is recognised by simply being lockable again. The file
+    records who holds it, for the message the second writer gets.
+    """
+
+    _held: ClassVar[dict[Path, int]] = {}  # lock files this process holds, with their nesting depth
+
+    def __init__(self, folder: str | Path):
+        self.path = (Path(folder) / LOCK_NAME).absolute()
+        self._file = None
+        self._nested = False
+
+    def acquire(self) -> RunLock:
+        if self.path in RunLock._held:  # this process already holds it (the CLI, then the trainer)
+            RunLock._held[self.path] += 1
+            self._nested = True
+            return self
+        handle = open(self.path, "a+")  # noqa: SIM115 - held open for the lock's lifetime
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as err:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            handle.close()
+            if err.errno not in (errno.EAGAIN, errno.EACCES):
+                raise
+            raise RunFolderError(
+                f"results folder {self.path.parent} is in use by {holder}; "
+                "wait for that run to end (or stop it) before resuming it"
+            ) from None
+        handle.seek(0)
+        handle.truncate()
+        started = time.strftime("%Y-%m-%d %H:%M:%S")
+        handle.write(f"process {os.getpid()} on {socket.gethostname()} (since {started})\n")
+        handle.flush()
+        self._file = handle
+        RunLock._held[self.path] = 1
+        return self
+
+    def release(self) -> None:
+        if self._nested:
+            RunLock._held[self.path] -= 1
+            self._nested = False
+        elif self._file is not None:
+            RunLock._held.pop(self.path, None)
+            self._file.close()  # closing the descriptor releases the flock
+            self._file = None
+
+    def __enter__(self) -> RunLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+# ------------------------------------------------------------------------------------------------
+# Fresh folders and resumed ones
+# ------------------------------------------------------------------------------------------------
+
+
+def holds_results(folder: Path) -> bool:
+    """Whether ``folder`` holds anything a run produced: a metric or evaluation line, a checkpoint,
+    a summary, or a file the project does not know. Leftovers of a start that failed before the
+    first chunk (the config, the plan, empty sub-folders, temporary files, the lock) do not count,
+    so a retry may use the same folder."""
+    paths = run_paths(folder)
+    startup = {paths["config"].name, paths["plan"].name, LOCK_NAME}
+    for entry in folder.iterdir():
+        if entry.name in startup or (entry.name.startswith(".") and TEMP_MARK in entry.name):
+            continue
+        if entry.is_dir() and entry.name in ("metrics", "eval", "checkpoints"):
+            if any(p.is_file() and p.stat().st_size for p in entry.rglob("*")):
+                return True
+            continue
+        return True
+    return False
+
+
+def remove_leftovers(folder: Path) -> None:
+    """Delete temporary files that a killed writer left in ``folder`` (never anything else)."""
+    for entry in folder.iterdir():
+        if entry.is_file() and entry.name.startswith(".") and TEMP_MARK in entry.name:
+            entry.unlink(missing_ok=True)
+
+
+def check_history(path: Path, expected_steps: list[int], what: str) -> None:
+    """Raise :class:`RunFolderError` unless ``path`` holds a row for every step in ``expected_steps``.
+
+    A resumed run continues the checkpoint's state, but the rows written before it cannot be
+    recomputed from that state: if they are gone, the run's history (and the learning curve) would
+    silently lose them."""
+    if not expected_steps:
+        return
+    have = {row.get("step") for row in read_rows(path)}
+    missing = [s for s in expected_steps if s not in have]
+    if not missing:
+        return
+    if not path.exists():
+        found = "is missing"
+    else:
+        found = f"lacks {len(missing)} of its {len(expected_steps)} {what} rows (steps {_span(missing)})"
+    raise RunFolderError(
+        f"cannot resume: {path.parent.name}/{path.name} {found}, which the checkpoint at step "
+        f"{expected_steps[-1]} does not contain; restore the file from a copy or start a new run with --out"
+    )
+
+
+def _span(steps: list[int]) -> str:
+    return str(steps[0]) if len(steps) == 1 else f"{steps[0]}…{steps[-1]}"
