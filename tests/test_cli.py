@@ -4,6 +4,8 @@ import functools
 import importlib.util
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -228,3 +230,126 @@ def test_smoke_run_of_every_env_and_algo(run, capsys, tmp_path, env, algo):
     assert summary["complete"] and "final return" in stdout
     last = json.loads((out / "metrics" / "seed_0.jsonl").read_text().splitlines()[-1])
     assert last["train/updates"] == 128 and last["train/loss_critic"] is not None
+
+
+# ---------------------------------------------------------------------------------------------
+# Runs that cannot hang, lie or lose work
+# ---------------------------------------------------------------------------------------------
+
+
+def read_lines(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def checkpoint_steps(out: Path) -> list[int]:
+    return sorted(int(p.name) for p in (out / "checkpoints" / "group_0").iterdir() if p.name.isdigit())
+
+
+def test_a_diverging_run_stops_naming_seed_step_and_quantity(run, capsys, tmp_path):
+    """Before: exit 0, "final return 0.000", every loss written as null. Now: exit 3 at the first
+    non-finite value, one line, the last good checkpoint kept and nothing after it."""
+    out = tmp_path / "diverged"
+    status, _, err = call(run, capsys, *SMOKE, "--set", "actor_lr=1e4", "--set", "critic_lr=1e4",
+                          "--out", str(out))  # fmt: skip
+    assert status == 3, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "diverged at step" in lines[0] and "became non-finite" in lines[0]
+    assert "seed 0" in lines[0] or "seed 1" in lines[0]
+    assert "checkpoint at step 64 of 192 per seed is kept" in lines[0]
+    assert checkpoint_steps(out) == [64]
+    assert not (out / "summary.json").exists()
+    first, second = read_lines(out / "metrics" / "seed_0.jsonl")
+    assert first["train/loss_critic"] is None  # warm-up: no update yet, so no data
+    assert "nan" in {second[k] for k in second if k.startswith("train/")} | {
+        v for v in second.values() if isinstance(v, str)
+    } or "inf" in second.values()
+
+
+def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_not_in_the_way(run, smoke_run, capsys, tmp_path):
+    copy = tmp_path / "locked"
+    shutil.copytree(smoke_run, copy)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from xrl_jax.run_folder import RunLock; "
+         "lock = RunLock(sys.argv[1]).acquire(); print('held', flush=True); time.sleep(120)", str(copy)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = files_of(copy, "metrics")
+        status, _, err = call(run, capsys, "--resume", str(copy), "--quiet")
+        one_line_error(status, err, "is in use by process", str(holder.pid))
+        assert files_of(copy, "metrics") == before
+    finally:
+        holder.kill()
+        holder.wait()
+    status, out, _ = call(run, capsys, "--resume", str(copy), "--quiet")  # the holder died: no stale lock
+    assert status == 0 and "final return" in out
+
+
+@pytest.mark.parametrize("damage", ["delete metrics", "truncate eval"])
+def test_resume_refuses_a_run_whose_history_is_gone(run, capsys, tmp_path, monkeypatch, damage):
+    args = [*SMOKE, "--steps", "256", "--set", "checkpoint_interval=128", "--set", "eval_interval=128"]
+    out = tmp_path / "run"
+    original = train_mod.train
+    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=3))
+    assert call(run, capsys, *args, "--out", str(out))[0] == 1
+    monkeypatch.setattr(train_mod, "train", original)
+    if damage == "delete metrics":
+        (out / "metrics" / "seed_1.jsonl").unlink()
+        fragments = ["metrics/seed_1.jsonl is missing"]
+    else:
+        (out / "eval" / "seed_0.jsonl").write_text("")
+        fragments = ["eval/seed_0.jsonl lacks 1 of its 1 evaluation rows (steps 128)"]
+    status, _, err = call(run, capsys, "--resume", str(out), "--quiet")
+    one_line_error(status, err, "cannot resume", *fragments)
+
+
+def test_leftovers_of_a_failed_start_do_not_block_a_retry(run, capsys, tmp_path):
+    out = tmp_path / "retry"
+    status, _, err = call(run, capsys, *SMOKE, "--set", "memory_budget_gb=0.000001", "--out", str(out))
+    one_line_error(status, err, "one seed needs about")  # the failed memory check left a folder...
+    (out / ".config.json.tmp4242").write_text("{half")  # ...and a killed atomic write a temporary file
+    status, stdout, err = call(run, capsys, *SMOKE, "--out", str(out))
+    assert status == 0 and "final return" in stdout, err
+    assert not (out / ".config.json.tmp4242").exists()
+
+
+def test_a_full_disk_ends_in_one_line_with_the_checkpoint_intact(run, capsys, tmp_path, monkeypatch):
+    import errno
+
+    from xrl_jax.checkpoint import Checkpointer
+
+    out = tmp_path / "full"
+    original = Checkpointer.save
+
+    def save(self, step, state, metadata):
+        if step > 64:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        original(self, step, state, metadata)
+
+    monkeypatch.setattr(Checkpointer, "save", save)
+    status, _, err = call(run, capsys, *SMOKE, "--out", str(out))
+    assert status == 1 and len(err.strip().splitlines()) == 1, err
+    assert "is full" in err and f"--resume {out}" in err
+    assert checkpoint_steps(out) == [64]
+
+
+def test_checkpoints_also_follow_wall_time(run, capsys, tmp_path, monkeypatch):
+    """A run interrupted between step checkpoints keeps the time-based one. With a tiny
+    checkpoint_minutes the first chunk's end is due; the next is not, because a time-based checkpoint
+    may cost at most 2 % of the wall time (the save's duration x 50 must have passed)."""
+    args = [*SMOKE, "--set", "checkpoint_interval=192"]
+    original = train_mod.train
+    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=2))
+    timed, untimed = tmp_path / "timed", tmp_path / "untimed"
+    assert call(run, capsys, *args, "--set", "checkpoint_minutes=1e-9", "--out", str(timed))[0] == 1
+    assert call(run, capsys, *args, "--set", "checkpoint_minutes=0", "--out", str(untimed))[0] == 1
+    assert checkpoint_steps(timed) == [64]
+    assert checkpoint_steps(untimed) == []
+
+
+def test_the_run_says_where_it_runs_and_what_it_will_cost(run, capsys, tmp_path):
+    status, _, err = call(run, capsys, *SMOKE[:-1], "--out", str(tmp_path / "talk"))
+    assert status == 0
+    assert "backend: cpu" in err or "backend: gpu" in err
+    assert "estimate: the whole run (2 seed(s) x 192 steps) takes ~" in err

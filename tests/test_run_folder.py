@@ -1,0 +1,133 @@
+"""The results folder: metric encoding, the writer's lock, history checks, leftovers, resources."""
+
+import errno
+import json
+
+import pytest
+
+from xrl_jax import resources
+from xrl_jax.run_folder import (
+    RunFolderError,
+    RunLock,
+    check_history,
+    encode_metric,
+    holds_results,
+    is_disk_full,
+    remove_leftovers,
+    truncate_lines,
+)
+from xrl_jax.train import CHECKPOINT_TIME_SHARE, _cost_lines, _RunClock, resolve_config
+
+
+def test_no_data_and_not_finite_are_different_values():
+    assert encode_metric(float("nan")) == "nan"
+    assert encode_metric(float("inf")) == "inf" and encode_metric(float("-inf")) == "-inf"
+    assert encode_metric(1.5) == 1.5 and encode_metric([1.0, float("nan")]) == [1.0, "nan"]
+    assert json.loads(json.dumps({"x": encode_metric(float("nan"))})) == {"x": "nan"}  # strict JSON
+
+
+def test_the_lock_is_exclusive_and_reentrant_within_a_process(tmp_path):
+    with RunLock(tmp_path), RunLock(tmp_path):  # the CLI holds it, then the trainer takes it again
+        assert "process" in (tmp_path / ".lock").read_text()
+    # released: another open file description can take it
+    import fcntl
+
+    with open(tmp_path / ".lock") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+def test_history_checks_name_what_is_missing(tmp_path):
+    path = tmp_path / "metrics" / "seed_0.jsonl"
+    path.parent.mkdir()
+    with pytest.raises(RunFolderError, match=r"metrics/seed_0\.jsonl is missing"):
+        check_history(path, [64, 128], "metric")
+    path.write_text('{"step": 64}\n{"step": 128, "cut')
+    with pytest.raises(RunFolderError, match=r"lacks 1 of its 2 metric rows \(steps 128\)"):
+        check_history(path, [64, 128], "metric")
+    check_history(path, [64], "metric")
+    truncate_lines(path, 64)
+    assert path.read_text() == '{"step": 64}\n'
+
+
+def test_a_failed_start_leaves_a_folder_that_holds_no_results(tmp_path):
+    for name in ("metrics", "eval", "checkpoints"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "plan.json").write_text("{}")
+    (tmp_path / ".config.json.tmp123").write_text("{")
+    assert not holds_results(tmp_path)
+    remove_leftovers(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoints", "config.json", "eval", "metrics",
+                                                           "plan.json"]  # fmt: skip
+    (tmp_path / "metrics" / "seed_0.jsonl").write_text('{"step": 64}\n')
+    assert holds_results(tmp_path)
+
+
+def test_disk_full_is_recognised_through_wrapping():
+    try:
+        try:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        except OSError as inner:
+            raise RuntimeError("orbax: save failed") from inner
+    except RuntimeError as outer:
+        assert is_disk_full(outer)
+    assert not is_disk_full(OSError(errno.EACCES, "Permission denied"))
+
+
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_the_memory_budget_reads_the_container_limit(tmp_path, version):
+    """Before: 90 % of the host's free RAM, and a run in an 8 GB container was OOM-killed silently."""
+    if version == "v2":
+        (tmp_path / "proc").write_text("0::/job/step\n")
+        folder = tmp_path / "cg" / "job"
+        limit, usage = "memory.max", "memory.current"
+    else:
+        (tmp_path / "proc").write_text("4:memory:/job/step\n3:cpu:/\n")
+        folder = tmp_path / "cg" / "memory" / "job"
+        limit, usage = "memory.limit_in_bytes", "memory.usage_in_bytes"
+    (folder / "step").mkdir(parents=True)
+    (folder / "step" / limit).write_text("max\n" if version == "v2" else "9223372036854771712\n")
+    (folder / limit).write_text(str(8 * 10**9))  # the limit sits on the parent group
+    (folder / usage).write_text(str(3 * 10**9))
+    headroom, description = resources.cgroup_memory_headroom(tmp_path / "cg", tmp_path / "proc")
+    assert headroom == 5 * 10**9 and "8.0 GB" in description
+    assert resources.cgroup_memory_headroom(tmp_path / "cg", tmp_path / "absent") is None
+
+
+def test_host_memory_takes_the_smaller_of_ram_and_the_container(monkeypatch):
+    monkeypatch.setattr(resources, "cgroup_memory_headroom", lambda: (1000, "container memory limit"))
+    assert resources.host_memory_available() == (1000, "container memory limit")
+
+
+def test_time_based_checkpoints_cost_at_most_two_percent():
+    cfg = resolve_config("tracking", "xdsac", "smoke", overrides={"checkpoint_minutes": "1"})
+    clock = _RunClock(cfg, num_groups=1)
+    clock.saved(seconds=10.0)  # a slow save: the next may come only after 10 s / 2 % = 500 s
+    clock.last_save -= 499.0
+    assert not clock.checkpoint_due_by_time()
+    clock.last_save -= 2.0
+    assert clock.checkpoint_due_by_time() and CHECKPOINT_TIME_SHARE == 0.02
+    clock.saved(seconds=0.1)  # a fast save: the 1-minute interval rules
+    clock.last_save -= 59.0
+    assert not clock.checkpoint_due_by_time()
+    clock.last_save -= 2.0
+    assert clock.checkpoint_due_by_time()
+    assert not _RunClock(cfg.replace(checkpoint_minutes=0.0), 1).checkpoint_due_by_time()
+
+
+def test_the_estimate_scales_the_first_updating_chunk_and_warns_beyond_a_day():
+    cfg = resolve_config("tracking", "xsac", "paper", num_seeds=20)  # 500 chunks of 2,000 steps
+    clock = _RunClock(cfg, num_groups=1)
+    clock.observe_chunk(0, seconds=1740.0)  # 256 warm-up transitions of 2,000: 1,744 updating
+    assert clock.chunk_s == pytest.approx(1740.0 * 2000 / 1744)
+    remaining = clock.remaining_s(0, 1)
+    assert remaining == pytest.approx(499 * clock.chunk_s)
+    lines = _cost_lines(cfg, 1800.0, remaining, "cpu (2 cores: test)")
+    assert "20 seed(s) x 1,000,000 steps" in lines[0] and "days" in lines[0]
+    assert len(lines) == 2 and "--preset quick" in lines[1] and "GPU" in lines[1]
+    quick = resolve_config("tracking", "xdsac", "quick")
+    assert len(_cost_lines(quick, 60.0, 600.0, "cpu")) == 1  # under a day: no warning
+    clock = _RunClock(quick, num_groups=1)
+    clock.observe_chunk(0, seconds=1.0)  # the quick preset's first chunk is all warm-up
+    assert clock.chunk_s is None
+
