@@ -145,84 +145,127 @@ def test_polyak_from_the_updated_critic(setup):
     leaves_close(new.target_critic_params, expected, rtol=1e-5, atol=1e-7)
 
 
-def unstack(tree, i):
-    return jax.tree_util.tree_map(lambda x: x[i], tree)
+def adam_first_step(grads, params, lr):
+    """optax.adam's first step from a fresh state, as each agent update takes on a new state."""
+    adam = optax.adam(lr)
+    updates, _ = adam.update(grads, adam.init(params))
+    return optax.apply_updates(params, updates)
+
+
+# Comparing one update computed by two programs (different summation orders): Adam's first step
+# lr·g/(|g| + 1e-8) turns a gradient error δ into a parameter error of up to lr·δ/1e-8 (1e6·δ at
+# lr = 1e-2). In float32 the rounding of a near-zero gradient coordinate (~1e-10) thus becomes a
+# sizeable, CPU-dependent fraction of lr, so these checks run in float64, where the gradients of
+# these tiny networks (sums of ≲ 10³ terms, |terms| adding up to ≲ 10³) round by at most
+# 10³·10³·1.1e-16 ≈ 1e-10, and a first Adam step by at most 1e6·1e-10 = 1e-4.
+F64_GRAD_ATOL = 1e-10
+F64_STEP_ATOL = 1e-4  # still 100× below the ±lr = 1e-2 (2.5e-3 in the decay test: 25×) of a step
+
+
+def float64_state(state):
+    """`state` with every floating leaf in float64 (call under x64: flax creates float32 parameters)."""
+    return jax.tree.map(
+        lambda x: x.astype(jnp.float64) if jnp.issubdtype(x.dtype, jnp.floating) else x, state
+    )
+
+
+def assert_float64(tree):
+    floats = [x for x in jax.tree_util.tree_leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)]
+    assert floats and all(x.dtype == jnp.float64 for x in floats)
 
 
 @pytest.mark.parametrize("algo", ["xsac", "dsac"])
 def test_update_follows_the_order_of_section_1_5(algo):
     """Rebuild one step by hand: critic → actor against the NEW critic with the OLD α → α from the
-    actor step's entropies → Polyak from the new critic; the agent's update must match."""
-    run = vmapped_update_run(algo)
-    agent = run["agent"]
-    state, batch, key = unstack(run["states"], 0), unstack(run["batches"], 0), run["keys"][0]
-    new_state = unstack(run["new_states"], 0)
+    actor step's entropies → Polyak from the new critic; the agent's update must match.
 
-    @jax.jit
+    Run in float64 (see F64_STEP_ATOL). Adam's first moment after one step is (1 − β1)·g, linear in
+    the gradient, so it shows which gradient each step used; the parameters alone would not, as a
+    first Adam step is ≈ ±lr whatever the gradient's size."""
+    agent = make_agent(tiny_config(algo), EXAMPLE, NUM_ACTIONS[algo])
+
     def by_hand(state, batch, key):
         target_key, actor_key = jax.random.split(key)
-        adam = optax.adam(1e-2)
         critic_grads, _ = jax.grad(agent.critic_loss, has_aux=True)(
             state.critic_params, state, batch, target_key
         )
-        updates, _ = adam.update(critic_grads, adam.init(state.critic_params))
-        critic_params = optax.apply_updates(state.critic_params, updates)
+        critic_params = adam_first_step(critic_grads, state.critic_params, 1e-2)
         with_new_critic = state.replace(critic_params=critic_params)
         actor_grads, aux = jax.grad(agent.actor_loss, has_aux=True)(
             state.actor_params, with_new_critic, batch, actor_key
         )
-        updates, _ = adam.update(actor_grads, adam.init(state.actor_params))
-        actor_params = optax.apply_updates(state.actor_params, updates)
-        alpha_grad = jnp.mean(aux["entropy"]) - state.hparams.target_entropy
-        log_alpha = state.log_alpha - 1e-2 * jnp.sign(alpha_grad)  # Adam's first step is lr·sign(g)
+        actor_params = adam_first_step(actor_grads, state.actor_params, 1e-2)
+        alpha_grad = jnp.mean(aux["entropy"]) - state.hparams.target_entropy  # d/d log α (§8 item 10)
+        log_alpha = adam_first_step(alpha_grad, state.log_alpha, 1e-2)
         target = losses.polyak_update(state.target_critic_params, critic_params, 0.1)
         stale_grads, _ = jax.grad(agent.actor_loss, has_aux=True)(state.actor_params, state, batch, actor_key)
-        return critic_params, actor_params, log_alpha, target, actor_grads, stale_grads
+        return {
+            "params": (critic_params, actor_params, log_alpha, target),
+            "grads": (critic_grads, actor_grads, alpha_grad),
+            "stale_actor_grads": stale_grads,
+        }
 
-    critic_params, actor_params, log_alpha, target, actor_grads, stale_grads = by_hand(state, batch, key)
-    # Adam's first step is ±lr per coordinate: compare with a tolerance far below lr = 1e-2
-    leaves_close(new_state.critic_params, critic_params, rtol=1e-4, atol=1e-4)
-    leaves_close(new_state.actor_params, actor_params, rtol=1e-4, atol=1e-4)
-    np.testing.assert_allclose(new_state.log_alpha, log_alpha, rtol=1e-5)
-    leaves_close(new_state.target_critic_params, target, rtol=1e-4, atol=1e-5)
-    # using the pre-update critic in the actor step would have given a different actor gradient
-    differs = [
-        not np.allclose(a, b, rtol=1e-3, atol=1e-6)
-        for a, b in zip(
-            jax.tree_util.tree_leaves(stale_grads), jax.tree_util.tree_leaves(actor_grads), strict=True
-        )
-    ]
-    assert any(differs)
+    @jax.jit
+    def run(state, batch, key):
+        new_state, _ = agent.update(key, state, batch)
+        return new_state, by_hand(state, batch, key)
+
+    with jax.enable_x64(True):  # also for the arithmetic below: outside it jnp rounds to float32
+        state = float64_state(agent.init(jax.random.PRNGKey(0)))
+        # entropy far above the target: α's gradient is far from zero
+        state = state.replace(hparams=state.hparams.replace(target_entropy=jnp.asarray(-100.0)))
+        new_state, hand = run(state, make_batch(jax.random.PRNGKey(1), algo), jax.random.PRNGKey(2))
+        assert_float64((new_state, hand))
+        critic, actor, log_alpha, target = hand["params"]
+        got = (new_state.critic_params, new_state.actor_params, new_state.log_alpha)
+        leaves_close(got, (critic, actor, log_alpha), rtol=0, atol=F64_STEP_ATOL)
+        # Polyak: τ = 0.1 times the critic's error
+        leaves_close(new_state.target_critic_params, target, rtol=0, atol=0.1 * F64_STEP_ATOL)
+        # the gradients each step used: Adam's μ = (1 − β1)·g = 0.1·g, so 0.1 × the gradients' tolerance
+        mus = [adam_first_moment(getattr(new_state, f"{n}_opt_state")) for n in ("critic", "actor", "alpha")]
+        expected = jax.tree.map(lambda g: 0.1 * g, hand["grads"])
+        leaves_close(mus, list(expected), rtol=0, atol=0.1 * F64_GRAD_ATOL)
+        # the pre-update critic would have given another actor gradient, far beyond that tolerance
+        stale = jax.tree.map(lambda a, b: np.abs(a - b).max(), hand["stale_actor_grads"], hand["grads"][1])
+        assert max(jax.tree_util.tree_leaves(stale)) > 1e3 * F64_GRAD_ATOL
 
 
 def test_learning_rate_decay_scales_every_step_linearly():
     """With ``lr_decay_updates=4`` the update at step 3 is the constant-rate update at a quarter of
     every learning rate, and from step 4 on actor, critic and log α stop moving. (The schedule is
-    the same code for every agent; one suffices.)"""
+    the same code for every agent; one suffices.) In float64: see F64_STEP_ATOL."""
     algo = "xdsac"
     decaying = make_agent(tiny_config(algo, lr_decay_updates=4), EXAMPLE, NUM_ACTIONS[algo])
     quarter = make_agent(
         tiny_config(algo, actor_lr=2.5e-3, critic_lr=2.5e-3), EXAMPLE, NUM_ACTIONS[algo]
     )  # alpha_lr follows critic_lr
-    state = decaying.init(jax.random.PRNGKey(3))
-    batch, key = make_batch(jax.random.PRNGKey(4), algo), jax.random.PRNGKey(5)
-    before = (state.actor_params, state.critic_params, state.log_alpha)
 
-    def learned(agent, steps, hparams):
-        starts = jax.vmap(lambda s: state.replace(step=s, hparams=hparams))(jnp.asarray(steps, jnp.int32))
+    def learned(agent, steps, state, batch, key):
+        starts = jax.vmap(lambda s: state.replace(step=s))(jnp.asarray(steps, jnp.int32))
         new = jax.jit(jax.vmap(agent.update, in_axes=(None, 0, None)))(key, starts, batch)[0]
+        moments = [adam_first_moment(getattr(new, f"{n}_opt_state")) for n in ("actor", "critic", "alpha")]
+        rest = (moments, new.target_critic_params)
         return [
-            jax.tree.map(lambda x, i=i: x[i], (new.actor_params, new.critic_params, new.log_alpha))
+            jax.tree.map(lambda x, i=i: x[i], ((new.actor_params, new.critic_params, new.log_alpha), rest))
             for i in range(len(steps))
         ]
 
-    [at_quarter] = learned(quarter, [3], quarter.init(jax.random.PRNGKey(3)).hparams)
-    at_3, at_4, at_9 = learned(decaying, [3, 4, 9], state.hparams)
-    leaves_close(at_3, at_quarter, rtol=1e-5, atol=1e-7)
-    moved = jax.tree.map(lambda a, b: np.abs(a - b).max(), at_quarter, before)
-    assert max(jax.tree_util.tree_leaves(moved)) > 1e-3
-    leaves_close(at_4, before, rtol=0, atol=0)
-    leaves_close(at_9, before, rtol=0, atol=0)
+    with jax.enable_x64(True):
+        state = float64_state(decaying.init(jax.random.PRNGKey(3)))
+        batch, key = make_batch(jax.random.PRNGKey(4), algo), jax.random.PRNGKey(5)
+        constant = state.replace(hparams=quarter.init(jax.random.PRNGKey(3)).hparams)
+        [(at_quarter, (quarter_moments, quarter_target))] = learned(quarter, [3], constant, batch, key)
+        (at_3, (moments_3, target_3)), (at_4, _), (at_9, _) = learned(decaying, [3, 4, 9], state, batch, key)
+        before = (state.actor_params, state.critic_params, state.log_alpha)
+        assert_float64((at_3, moments_3, at_quarter, constant.hparams))
+        # same gradients (Adam's μ = 0.1·g): the decay changes learning rates only
+        leaves_close(moments_3, quarter_moments, rtol=0, atol=0.1 * F64_GRAD_ATOL)
+        leaves_close(at_3, at_quarter, rtol=0, atol=F64_STEP_ATOL)
+        leaves_close(target_3, quarter_target, rtol=0, atol=0.1 * F64_STEP_ATOL)  # τ = 0.1 does not decay
+        moved = jax.tree.map(lambda a, b: np.abs(a - b).max(), at_quarter, before)
+        assert max(jax.tree_util.tree_leaves(moved)) > 1e-3
+        leaves_close(at_4, before, rtol=0, atol=0)  # p − 0·u = p exactly
+        leaves_close(at_9, before, rtol=0, atol=0)
 
 
 @pytest.fixture(scope="module")
