@@ -573,12 +573,18 @@ def tree_all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.bool_(True)
 
 
+def _update_metric_order(metrics) -> list[str]:
+    """The update's metric names, losses first: when a step turns several of them non-finite at
+    once, the health check names a loss (the likely cause) rather than, say, a Q-value statistic."""
+    return sorted(metrics, key=lambda name: (not name.startswith("loss"), name))
+
+
 @struct.dataclass
 class ChunkHealth:
     """What the host checks after every chunk, per seed, before it trusts the new state."""
 
-    first_nonfinite_step: jax.Array  # transition step of the first non-finite loss; -1: none
-    first_nonfinite_loss: jax.Array  # its index in ``Trainer.loss_names``; -1: none
+    first_nonfinite_step: jax.Array  # transition step of the first non-finite update metric; -1: none
+    first_nonfinite_loss: jax.Array  # that metric's index in ``Trainer.loss_names``; -1: none
     agent_finite: jax.Array  # every parameter and optimiser state of the agent is finite
 
 
@@ -602,7 +608,8 @@ class Trainer:
       seed, the state donated; the report's values are per-seed scalars (leading seed axis);
     * ``evaluate(state) -> (eval_keys, per_episode)``: the §6.1 protocol on the fixed tracks.
 
-    ``loss_names`` are the update's metrics in the order ``ChunkHealth.first_nonfinite_loss`` counts.
+    ``loss_names`` are the update's metrics (losses first) in the order that
+    ``ChunkHealth.first_nonfinite_loss`` counts.
     """
 
     config: TrainConfig
@@ -869,7 +876,8 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         for k, v in outs["metrics"].items():
             average(f"train/{k}", jnp.sum(v), updates)
         metrics["train/updates"] = state.agent.step
-        metrics["train/ent_coef"] = jnp.exp(state.agent.log_alpha)
+        metrics["train/ent_coef"] = jnp.exp(state.agent.log_alpha)  # the current α: always there
+        has_data.pop("train/ent_coef", None)
         average("rollout/avg_step_reward", jnp.sum(outs["reward_sum"]), jnp.sum(outs["reward_count"]))
         window_means, window_filled = _window_means(state.window, multi)
         metrics.update(window_means)
@@ -882,7 +890,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         metrics["buffer/stored_rows"] = state.buffer.filled_rows
         # The first vector step whose update produced a non-finite loss (and which one), and whether
         # the agent's parameters and optimiser states are still finite: the host stops on either.
-        bad = jnp.stack([~jnp.isfinite(outs["metrics"][k]) for k in sorted(outs["metrics"])], axis=1)
+        bad = jnp.stack([~jnp.isfinite(outs["metrics"][k]) for k in _update_metric_order(outs["metrics"])], 1)
         bad_step = jnp.any(bad, axis=1)
         first = jnp.argmax(bad_step)
         health = ChunkHealth(
@@ -912,7 +920,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
 
     chunk = jax.jit(jax.vmap(chunk_one, in_axes=(0, None)), donate_argnums=0)
     evaluate = jax.jit(jax.vmap(evaluate_seed))
-    loss_names = tuple(f"train/{k}" for k in sorted(metric_shapes))
+    loss_names = tuple(f"train/{k}" for k in _update_metric_order(metric_shapes))
     return Trainer(cfg, env, params, eval_params, agent, init, chunk, evaluate, loss_names)
 
 
@@ -1069,7 +1077,7 @@ def divergence_message(
     row = min(bad_rows, key=lambda r: (first_step[r], r))
     if loss_step[row] >= 0:
         name = loss_names[int(health.first_nonfinite_loss[row])]
-        what = f"the loss {name} became non-finite"
+        what = f"{name} became non-finite"
     else:
         what = f"the agent's {_first_nonfinite_leaf(agent_of_row(row))} became non-finite"
     others = len(bad_rows) - 1
