@@ -1275,11 +1275,20 @@ class _HostLoop:
                 f"seed group need up to {needed / 1e9:.1f} GB")  # fmt: skip
         return plan
 
+    def _log_above_bar(self, line: str) -> None:
+        if self.bar is None:
+            self.log(line)
+            return
+        from tqdm import tqdm
+
+        with tqdm.external_write_mode(file=sys.stderr):
+            self.log(line)
+
     def _kept(self, step: int, group_index: int) -> str:
         """What a resume would continue from, in words."""
         where = f" (seed group {group_index + 1} of {len(self.groups)})" if len(self.groups) > 1 else ""
         if step <= 0:
-            return f"nothing has been checkpointed yet{where}"
+            return f"nothing has been checkpointed yet{where}, so a resume starts this group afresh"
         return f"the checkpoint at step {step:,} of {self.cfg.total_steps:,} per seed is kept{where}"
 
     def _run_group(self, group_index: int, seeds: list[int], resume: bool) -> None:
@@ -1380,7 +1389,7 @@ class _HostLoop:
             clock.estimated = True
             remaining = clock.remaining_s(group_index, chunk_index + 1)
             for line in _cost_lines(cfg, time.perf_counter() - self.start_time, remaining, self.backend):
-                self.log(line)
+                self._log_above_bar(line)
         return state, saved_step
 
     def _evaluate(self, state: RunState, seeds: list[int], step: int) -> RunState:
