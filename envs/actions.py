@@ -86,6 +86,16 @@ def _lookup(table, index):
     return jnp.where(valid[..., None], rows, jnp.nan)
 
 
+def invalid_discrete_index(index) -> jax.Array:
+    """True where ``index`` (traced, any shape) selects no row of the table: outside [0, 12) or,
+    for a float array, NaN, ±inf or a value that does not truncate into [0, 12). Checked before
+    any cast to int32, which truncates towards zero and has no defined value for NaN or inf."""
+    index = jnp.asarray(index)
+    if jnp.issubdtype(index.dtype, jnp.integer):
+        return (index < 0) | (index >= NUM_DISCRETE_ACTIONS)
+    return ~jnp.isfinite(index) | (index <= -1) | (index >= NUM_DISCRETE_ACTIONS)
+
+
 def discrete_to_action(index) -> jax.Array:
     """Discrete index (...) -> raw continuous action (..., 3) of the paper's 12-way table.
 

@@ -20,6 +20,15 @@ The 60 s restart of the paper's training loop happens INSIDE ``step`` after
 then belong to the new episode, ``info["final_obs"]`` keeps the ending step's observations,
 and agents that acted and survived get ``truncated=True`` (a time limit, to be bootstrapped).
 
+Invalid actions: a slot whose action has a NaN or ±inf entry (after the cast to the env's float
+dtype), or whose discrete index selects no row of the 12-way table (outside [0, 12), or a float that
+is not finite), ends that vehicle's episode: it is stepped with the neutral control (steering 0,
+pedals released) so its state stays finite and other cars still see and hit it, it gets reward -1,
+``terminated`` and ``done_reason`` :data:`NONFINITE_ACTION` = 4 (overriding goal, off-road and
+collision for that car, which then count neither as a trip nor as a car off the road; hard collision
+pairs still count), and ``info["nonfinite_action"]`` is True for it. Only acting (alive) slots are
+checked: padding slots may hold anything. Finite continuous actions are clipped to [-1, 1].
+
 Quirks of the original are reproduced by default and can be switched off with static flags of
 :class:`IntersectionParams` (§9): ``stale_spawn_timers`` (Q1), ``body_velocity_frame_bug``
 (Q2) and ``soft_collisions`` (Q3).
@@ -46,8 +55,14 @@ CURRICULUM = (1, 2, 4, 8)
 # Curriculum probabilities proportional to 1/n (§8.3): (8, 4, 2, 1) / 15.
 CURRICULUM_PROBS = tuple(float(p) for p in (1.0 / np.array(CURRICULUM)) / np.sum(1.0 / np.array(CURRICULUM)))
 
-DONE_NONE, COMPLETED_ROUTE, LEFT_ROAD, COLLIDED = 0, 1, 2, 3
-DONE_REASONS = {DONE_NONE: "", COMPLETED_ROUTE: "CompletedRoute", LEFT_ROAD: "LeftRoad", COLLIDED: "Collided"}
+DONE_NONE, COMPLETED_ROUTE, LEFT_ROAD, COLLIDED, NONFINITE_ACTION = 0, 1, 2, 3, 4
+DONE_REASONS = {
+    DONE_NONE: "",
+    COMPLETED_ROUTE: "CompletedRoute",
+    LEFT_ROAD: "LeftRoad",
+    COLLIDED: "Collided",
+    NONFINITE_ACTION: "NonFiniteAction",
+}
 
 VEHICLES_SET_ROWS = 8  # XRLDMP's max_objects
 VEHICLE_FEATURES = 7  # present, x, y, vx, vy, cos, sin
@@ -521,6 +536,18 @@ class IntersectionEnv(Environment):
         action = jnp.where(alive[:, None], action.astype(default_float()), 0.0)
         return actions_mod.continuous_to_control(action)
 
+    def _checked_control(self, action, alive):
+        """``(control (8, 3), invalid (8,))``: ``_control`` with the neutral zeros in the alive slots
+        whose action is invalid (see the module docstring); ``invalid`` is False where not alive."""
+        control = self._control(action, alive)  # validates the shape first
+        action = jnp.asarray(action)
+        if self.discrete:
+            invalid = actions_mod.invalid_discrete_index(action)
+        else:
+            invalid = ~jnp.all(jnp.isfinite(action.astype(default_float())), axis=-1)
+        invalid = alive & invalid
+        return jnp.where(invalid[:, None], jnp.zeros_like(control), control), invalid
+
     def reset_env(self, key: jax.Array, params: IntersectionParams):
         """A fresh environment: spawner timers are all "none"."""
         dtype = default_float()
@@ -550,8 +577,9 @@ class IntersectionEnv(Environment):
 
         Returns per-slot ``(obs, state, reward, terminated, truncated, info)``; reward/terminated/
         truncated are meaningful where ``info["acted"]``. Info keys: ``acted``, ``alive``, ``final_obs``,
-        ``episode_end``, ``done_reason`` (0 none, 1 completed route, 2 left road, 3 collided),
-        ``trips_completed``, ``come_off_vehicles``, ``collided_vehicles``, ``mean_velocity``,
+        ``episode_end``, ``done_reason`` (0 none, 1 completed route, 2 left road, 3 collided,
+        4 non-finite action), ``nonfinite_action`` (per slot), ``trips_completed``,
+        ``come_off_vehicles``, ``collided_vehicles``, ``mean_velocity``,
         ``episode_step`` (episode values at the end of this step, before any restart).
         """
         dtype = default_float()
@@ -561,7 +589,7 @@ class IntersectionEnv(Environment):
         time = step.astype(dtype) * params.dt
 
         # Physics (cars do not interact physically).
-        control = self._control(action, acted)
+        control, invalid = self._checked_control(action, acted)
         stepped = vehicle_step(params.vehicle, state.vehicle, control)
         vehicle = _where_slots(acted, stepped, state.vehicle)
 
@@ -572,14 +600,14 @@ class IntersectionEnv(Environment):
         velocity_sum = state.velocity_sum + jnp.sum(jnp.where(acted, moved / params.dt, 0.0))
         velocity_count = state.velocity_count + jnp.sum(acted, dtype=jnp.int32)
 
-        goal = acted & goal
+        goal = acted & goal & ~invalid
         reward = jnp.where(goal, 1.0, reward)
         reason = jnp.where(goal, COMPLETED_ROUTE, DONE_NONE)
 
         on_road = jax.vmap(
             lambda x, y, t: geo.rectangle_on_road(x, y, t, geo.VEHICLE_HALF_LENGTH, geo.VEHICLE_HALF_WIDTH)
         )(vehicle.x, vehicle.y, vehicle.theta)
-        off_road = acted & ~on_road
+        off_road = acted & ~on_road & ~invalid
         reward = jnp.where(off_road, -1.0, reward)
         reason = jnp.where(off_road, LEFT_ROAD, reason)
 
@@ -588,8 +616,10 @@ class IntersectionEnv(Environment):
         reward, hit, hard_pairs = collision_rewards(
             params, _poses(vehicle), speed, acted, state.spawn_seq, reward.astype(dtype)
         )
-        reason = jnp.where(hit, COLLIDED, reason).astype(jnp.int32)
-        terminated = acted & (goal | off_road | hit)
+        reason = jnp.where(hit, COLLIDED, reason)
+        reason = jnp.where(invalid, NONFINITE_ACTION, reason).astype(jnp.int32)
+        reward = jnp.where(invalid, -1.0, reward).astype(dtype)
+        terminated = acted & (goal | off_road | hit | invalid)
 
         ended = state.replace(
             vehicle=vehicle,
@@ -623,6 +653,7 @@ class IntersectionEnv(Environment):
             "final_obs": final_obs,
             "episode_end": episode_end,
             "done_reason": jnp.where(acted, reason, DONE_NONE).astype(jnp.int32),
+            "nonfinite_action": invalid,
             "trips_completed": ended.trips_completed,
             "come_off_vehicles": ended.come_off_vehicles,
             "collided_vehicles": ended.collided_vehicles,

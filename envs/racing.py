@@ -18,9 +18,17 @@ exact branch and bound over chunks of segments (:func:`project_point`). With
 
 Info (fixed shapes, every step): ``avg_track_velocity`` (the original's Metric.AvgTrackVelocity),
 ``cones_hit`` (Metric.ConesHit, cumulative, always 0 for Tracking), ``done_reason``
-(:data:`DONE_NONE`/``LEFT_TRACK``/``MAX_TIME``/``IDLING`` = 0/1/2/3, as in the golden data),
-``time_limit_truncated`` (= truncated), ``track_progress`` (m along the travel direction),
-``proj_s`` and ``dist_center`` (nearest centre-line point arc length in stored order, distance).
+(:data:`DONE_NONE`/``LEFT_TRACK``/``MAX_TIME``/``IDLING`` = 0/1/2/3, as in the golden data, and
+:data:`NONFINITE_ACTION` = 4), ``time_limit_truncated`` (= truncated), ``track_progress`` (m along the
+travel direction), ``proj_s`` and ``dist_center`` (nearest centre-line point arc length in stored
+order, distance), ``nonfinite_action`` (bool).
+
+Invalid actions: a diverged policy must not poison the state or hang the step, so an action with a
+NaN or ±inf entry (after the cast to the env's float dtype; a discrete index outside [0, 12), or a
+float index that is not finite, counts the same) ends the episode: the car is stepped with the
+neutral control (steering 0, pedals released), ``terminated`` is True with ``done_reason`` 4 (it
+overrides the other reasons), the reward is ``offtrack_reward`` and ``info["nonfinite_action"]`` is
+True. Finite continuous actions outside [-1, 1] are clipped (§4.1), however large.
 """
 
 from __future__ import annotations
@@ -39,8 +47,14 @@ from envs.core import Box, Dict, Discrete, Environment, default_float
 from envs.track import Track
 from envs.vehicle import VehicleParams, VehicleState, odometry_observation, vehicle_step
 
-DONE_NONE, LEFT_TRACK, MAX_TIME, IDLING = 0, 1, 2, 3
-DONE_REASONS = {DONE_NONE: "", LEFT_TRACK: "LeftTrack", MAX_TIME: "MaxTime", IDLING: "Idling"}
+DONE_NONE, LEFT_TRACK, MAX_TIME, IDLING, NONFINITE_ACTION = 0, 1, 2, 3, 4
+DONE_REASONS = {
+    DONE_NONE: "",
+    LEFT_TRACK: "LeftTrack",
+    MAX_TIME: "MaxTime",
+    IDLING: "Idling",
+    NONFINITE_ACTION: "NonFiniteAction",
+}
 
 # Collision box of the car around the CoG (§1.1) and cone radius (§5.7).
 _BOX_HALF_LENGTH = 1.905
@@ -304,6 +318,10 @@ def project_point(view: TrackView, px, py):
     formula, so the answer is the global one (tests compare with :func:`project_point_global`), but a
     step reads ~3 chunks of 16 segments instead of all 800. Under ``vmap`` the loop runs as many
     rounds as the slowest env of the batch needs.
+
+    The loop runs at most once per chunk, for every input. A position that is not finite, or so far
+    away that a squared distance overflows, is infinitely far from the ring: distance ``inf``, s = 0
+    and the tangent at s = 0 (the racing step then reports it as off the track).
     """
     tables = view.tables
     chunks = jnp.arange(tables.chunk_x.shape[-1])
@@ -317,11 +335,18 @@ def project_point(view: TrackView, px, py):
     inf = jnp.asarray(jnp.inf, bound2.dtype)
     offsets = jnp.arange(CHUNK, dtype=jnp.int32)
 
+    num_chunks = chunks.shape[0]
+
     def pending(carry):
-        return jnp.any(carry[0] <= carry[1])
+        # Trip bound: a visit closes its chunk (bound -> inf), and once best_d2 is finite a closed chunk
+        # never qualifies again, so a finite position visits each chunk at most once and stops by
+        # itself within num_chunks rounds (its first visit, the lowest bound, is a chunk with a valid
+        # segment and makes best_d2 finite). A non-finite position (or an overflowing d2) never finds
+        # a finite best_d2, and without the counter it would revisit the closed chunks forever.
+        return jnp.any(carry[0] <= carry[1]) & (carry[4] < num_chunks)
 
     def visit(carry):
-        open_bound2, best_d2, best_j, best_t = carry
+        open_bound2, best_d2, best_j, best_t, rounds = carry
         chunk = _first_min_index(open_bound2).astype(jnp.int32)
         index = chunk * CHUNK + offsets
         d2, t = _segment_d2(view, px, py, index)
@@ -332,10 +357,15 @@ def project_point(view: TrackView, px, py):
             jnp.where(better, d2[k], best_d2),
             jnp.where(better, index[k], best_j),
             jnp.where(better, t[k], best_t),
+            rounds + 1,
         )
 
-    start = (bound2, inf, jnp.asarray(view.size, jnp.int32), jnp.zeros_like(bound2[0]))
-    _, best_d2, best_j, best_t = jax.lax.while_loop(pending, visit, start)
+    start = (bound2, inf, jnp.asarray(view.size, jnp.int32), jnp.zeros_like(bound2[0]), jnp.int32(0))
+    _, best_d2, best_j, best_t, _ = jax.lax.while_loop(pending, visit, start)
+    # No finite distance (non-finite position): segment 0 at t = 0, distance sqrt(inf) = inf. (The
+    # tie-break may have recorded an inf-distance segment with a NaN t; that is discarded here.)
+    found = jnp.isfinite(best_d2)
+    best_j, best_t = jnp.where(found, best_j, 0), jnp.where(found, best_t, 0)
     return _finish_projection(view, best_j, best_t, best_d2)
 
 
@@ -456,6 +486,16 @@ class RacingEnv(Environment):
             return actions_mod.discrete_to_control(jnp.asarray(action, jnp.int32))
         return actions_mod.continuous_to_control(jnp.asarray(action, default_float()))
 
+    def _checked_control(self, action):
+        """``(control, invalid)``: the control, or the neutral zeros when the action is invalid
+        (non-finite, or a discrete index outside the table; see the module docstring)."""
+        if self.discrete:
+            invalid = actions_mod.invalid_discrete_index(action)
+        else:
+            invalid = ~jnp.all(jnp.isfinite(jnp.asarray(action, default_float())))
+        control = self._control(action)
+        return jnp.where(invalid, jnp.zeros_like(control), control), invalid
+
     def _observation(self, params, view, vehicle, cone_alive, s) -> dict[str, jax.Array]:
         return {
             "state": odometry_observation(params.vehicle, vehicle),
@@ -546,7 +586,7 @@ class RacingEnv(Environment):
         dt = jnp.asarray(vp.dt, dtype)
 
         # 1-3: action mapping, counter, vehicle update.
-        control = self._control(action)
+        control, invalid = self._checked_control(action)
         step_count = state.step_count + 1
         vehicle = vehicle_step(vp, state.vehicle, control)
         position = jnp.stack([vehicle.x, vehicle.y])
@@ -583,10 +623,11 @@ class RacingEnv(Environment):
         idling = idle_count >= params.max_idle_steps
         reason = jnp.where(
             left_track, LEFT_TRACK, jnp.where(max_time, MAX_TIME, jnp.where(idling, IDLING, DONE_NONE))
-        ).astype(jnp.int32)
-        terminated = left_track
-        truncated = ~left_track & (max_time | idling)
-        reward = jnp.where(left_track, params.offtrack_reward, reward).astype(dtype)
+        )
+        reason = jnp.where(invalid, NONFINITE_ACTION, reason).astype(jnp.int32)
+        terminated = left_track | invalid
+        truncated = ~terminated & (max_time | idling)
+        reward = jnp.where(terminated, params.offtrack_reward, reward).astype(dtype)
 
         # 5: observation from the new state and the remaining cones.
         obs = self._observation(params, view, vehicle, cone_alive, s)
@@ -610,6 +651,7 @@ class RacingEnv(Environment):
             "track_progress": new_state.track_progress,
             "proj_s": s,
             "dist_center": distance,
+            "nonfinite_action": invalid,
         }
         return obs, new_state, reward, terminated, truncated, info
 
