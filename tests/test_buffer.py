@@ -92,6 +92,14 @@ def test_compact_layout_never_samples_truncated_transitions():
     assert sampled == set(range(11)) - {2, 5, 6}
 
 
+def test_sampling_ends_when_no_transition_is_valid():
+    # The redraw loop is bounded (MAX_REDRAWS): with nothing valid it gives up instead of spinning.
+    buffer = buffer_init(*example(), capacity=60, num_envs=NUM_ENVS)
+    buffer = fill(buffer, 3, truncate_at=(0, 1))  # readable rows 0 and 1, both truncated
+    batch = sample_batch(buffer, jax.random.PRNGKey(1), 8)
+    assert set(np.asarray(batch["reward"]).astype(int).tolist()) <= {0, 1}
+
+
 def test_explicit_layout_keeps_truncated_transitions():
     buffer = buffer_init(*example(), capacity=60, num_envs=NUM_ENVS, layout="explicit")
     buffer = fill(buffer, 12, truncate_at=(2, 5), explicit=True)

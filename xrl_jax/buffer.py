@@ -268,6 +268,11 @@ def buffer_sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> dict
         return key, jnp.where(keep, rows, new_rows), jnp.where(keep, envs, new_envs), count + 1
 
     def needs_redraw(carry):
+        # Ends after at most MAX_REDRAWS rounds whatever the buffer holds (the loop reads only keys and
+        # the boolean valid flags, nothing that can be NaN). The bound only matters when invalid
+        # transitions are common: with an invalid fraction p a candidate is still invalid after it
+        # with probability p**MAX_REDRAWS (below 1e-170 for the ~1/600 truncated steps of the compact layout).
+        # A buffer with no valid transition returns invalid ones after the last round.
         _, rows, envs, count = carry
         return jnp.any(~is_valid(rows, envs)) & (count < MAX_REDRAWS)
 

@@ -75,6 +75,8 @@ def make_evaluate(env, eval_params, agent, num_episodes: int):
         }
 
         def running(carry):
+            # At most max_steps + 1 rounds, whatever the policy outputs. The env truncates every episode
+            # at max_steps (and terminates it at once on a NaN action), so the count never cuts one short.
             _, _, done, _, _, t = carry
             return ~jnp.all(done) & (t < max_steps + 1)
 
