@@ -6,8 +6,10 @@
   the next episode and ``infos["final_obs"]`` holds the ending observation (a dict of arrays over all
   envs; rows with ``infos["_final_obs"] == False`` repeat the returned observation).
 
-Actions are validated on the host: anything outside the action space (wrong shape, NaN, values
-outside [-1, 1], a discrete index outside [0, 12)) raises ``ValueError`` before the env is touched.
+Actions are validated on the host: anything outside the action space (wrong shape, a complex dtype,
+NaN or inf, values outside [-1, 1], a discrete index outside [0, 12)) raises ``ValueError`` before
+the env is touched. ``GymEnv.step`` before ``reset()``, or after an episode has terminated or been
+truncated, raises :class:`ResetNeeded` (Gymnasium's order error); the vector env resets by itself.
 Info values are numpy arrays/scalars (see ``envs.racing`` for the keys). Seeding: ``reset(seed=k)``
 restarts the env's key stream at ``PRNGKey(k)``; ``reset()`` continues it.
 """
@@ -26,6 +28,11 @@ from gymnasium.vector.utils import batch_space
 from envs import core
 from envs.racing import RacingEnv, RacingParams, check_action
 from envs.registry import make
+
+
+class ResetNeeded(gymnasium.error.ResetNeeded, RuntimeError):
+    """``step`` without a running episode: Gymnasium's error, also a ``RuntimeError`` (as raised
+    before for a missing ``reset``) so existing handlers keep working."""
 
 
 def to_gym_space(space: core.Space) -> gymnasium.spaces.Space:
@@ -71,6 +78,7 @@ class GymEnv(gymnasium.Env):
         self._step_fn = jax.jit(self.env.step)
         self._key = jax.random.PRNGKey(0)
         self._state = None
+        self._episode_over = False
 
     def _next_key(self):
         self._key, key = jax.random.split(self._key)
@@ -81,16 +89,22 @@ class GymEnv(gymnasium.Env):
         if seed is not None:
             self._key = jax.random.PRNGKey(seed)
         obs, self._state = self._reset_fn(self._next_key(), self.params)
+        self._episode_over = False
         return _obs_to_numpy(obs), {}
 
     def step(self, action):
         if self._state is None:
-            raise RuntimeError("call reset() before step()")
+            raise ResetNeeded("call reset() before step()")
+        if self._episode_over:
+            # The ended state would only repeat its ending (e.g. -1 and terminated off the track).
+            raise ResetNeeded("the episode has ended (terminated or truncated); call reset() before step()")
         action = check_action(self.env, action)
         obs, self._state, reward, terminated, truncated, info = self._step_fn(
             self._next_key(), self._state, jnp.asarray(action), self.params
         )
-        return _obs_to_numpy(obs), float(reward), bool(terminated), bool(truncated), _to_numpy(info)
+        terminated, truncated = bool(terminated), bool(truncated)
+        self._episode_over = terminated or truncated
+        return _obs_to_numpy(obs), float(reward), terminated, truncated, _to_numpy(info)
 
 
 class GymVectorEnv(VectorEnv):
@@ -139,7 +153,7 @@ class GymVectorEnv(VectorEnv):
 
     def step(self, actions):
         if self._state is None:
-            raise RuntimeError("call reset() before step()")
+            raise ResetNeeded("call reset() before step()")
         actions = self._check_actions(actions)
         obs, self._state, reward, terminated, truncated, info = self._step_fn(
             self._next_key(), self._state, jnp.asarray(actions), self.params

@@ -662,8 +662,11 @@ def _start_bank(env: RacingEnv, params: RacingParams):
 
 
 def check_action(env: RacingEnv, action) -> np.ndarray:
-    """Host-side validation used by the Gymnasium adaptors: raises ValueError outside the space or on NaN."""
+    """Host-side validation used by the Gymnasium adaptors: raises ValueError outside the space, on
+    NaN/inf, and on a complex action (casting would silently drop its imaginary part)."""
     arr = np.asarray(action)
+    if np.iscomplexobj(arr):
+        raise ValueError(f"action must be real, got complex dtype {arr.dtype}: {action!r}")
     if env.discrete:
         n = actions_mod.NUM_DISCRETE_ACTIONS
         if arr.shape != () or not np.issubdtype(arr.dtype, np.integer) or not 0 <= int(arr) < n:

@@ -2,12 +2,13 @@
 
 from pathlib import Path
 
+import gymnasium
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
 import envs
-from envs.gym import GymEnv, GymVectorEnv
+from envs.gym import GymEnv, GymVectorEnv, ResetNeeded
 
 DATA = Path(__file__).parent / "data"
 
@@ -49,6 +50,44 @@ def test_single_env_rejects_bad_actions(track):
         GymEnv(envs.CountryRoad())
 
 
+def test_complex_actions_are_rejected(track):
+    # The cast to float32 would drop the imaginary part with only a ComplexWarning.
+    env = GymEnv("country_road", track=track)
+    env.reset(seed=0)
+    for bad in (np.array([0.0, 0.5 + 0.1j, 0.0]), np.zeros(3, np.complex64), [0j, 1 + 0j, 0j]):
+        with pytest.raises(ValueError, match="real"):
+            env.step(bad)
+    discrete = GymEnv(envs.CountryRoad(discrete=True), params=env.params)
+    discrete.reset(seed=0)
+    with pytest.raises(ValueError, match="action"):
+        discrete.step(np.complex64(3))
+    vec = GymVectorEnv("country_road", num_envs=2, track=track)
+    vec.reset(seed=0)
+    with pytest.raises(ValueError, match="real"):
+        vec.step(np.zeros((2, 3), np.complex128))
+
+
+@pytest.mark.parametrize(
+    ("overrides", "action", "ended"),
+    [
+        ({"max_steps": 1}, [0.0, -1.0, -1.0], "truncated"),
+        ({"track_width": 0.0}, [1.0, 1.0, -1.0], "terminated"),  # any distance > 0 leaves the track
+    ],
+)
+def test_stepping_an_ended_episode_needs_reset(track, overrides, action, ended):
+    env = GymEnv("tracking", track=track, **overrides)
+    with pytest.raises(ResetNeeded, match="reset"):
+        env.step(action)
+    env.reset(seed=0)
+    *_, terminated, truncated, _ = env.step(action)
+    assert {"terminated": terminated, "truncated": truncated}[ended]
+    for error in (ResetNeeded, gymnasium.error.ResetNeeded, RuntimeError):  # Gymnasium's, and as before
+        with pytest.raises(error, match="call reset"):
+            env.step(action)
+    env.reset()
+    env.step(action)  # a new episode steps again
+
+
 def test_vector_env_steps_and_auto_resets(track):
     vec = GymVectorEnv("tracking", num_envs=3, track=track, max_steps=2)
     obs, _ = vec.reset(seed=1)
@@ -65,3 +104,14 @@ def test_vector_env_steps_and_auto_resets(track):
         vec.step(np.zeros((2, 3), np.float32))
     with pytest.raises(ValueError, match="action"):
         vec.step(np.full((3, 3), 2.0, np.float32))
+    # The vector env needs no reset after an ending: the rows already run their next episode.
+    _, _, terminated, truncated, info = vec.step(actions)
+    assert not (terminated | truncated).any() and not info["_final_obs"].any()
+    _, _, terminated, truncated, info = vec.step(actions)
+    assert truncated.all() and info["_final_obs"].all()
+
+
+def test_vector_env_needs_a_first_reset(track):
+    vec = GymVectorEnv("tracking", num_envs=2, track=track)
+    with pytest.raises(ResetNeeded, match="reset"):
+        vec.step(np.zeros((2, 3), np.float32))
