@@ -273,7 +273,8 @@ class MultiAgentEpisodeRecord(EpisodeRecord):
     Step t holds the state s_t and the per-slot observations o_t, the explanation of every slot's
     policy at o_t (also of empty slots, whose all-zero observation makes it meaningless: use
     ``acted``), the actions and their controls, and per slot the reward, end flags and
-    ``done_reason`` (0 none, 1 route completed, 2 left the road, 3 collided) of the step.
+    ``done_reason`` (0 none, 1 route completed, 2 left the road, 3 collided, 4 non-finite action)
+    of the step.
     ``acted[t, s]``: slot s held a car in s_t (its entries are meaningful); ``alive[t, s]``: it
     holds one after the step. A slot whose car ended can later be refilled by a NEW car (a larger
     ``states.spawn_seq``). ``valid`` is all True (kept for the single-agent record's interface).
