@@ -1138,12 +1138,14 @@ class _RunClock:
         if self.chunk_s is None:
             return None
         cfg = self.cfg
-        chunks = (cfg.num_chunks - next_chunk) + (self.num_groups - group_index - 1) * cfg.num_chunks
-        ends = [cfg.chunk_end_step(c) for c in range(next_chunk, cfg.num_chunks)]
-        later = (self.num_groups - group_index - 1) * [cfg.chunk_end_step(c) for c in range(cfg.num_chunks)]
-        evals = sum(1 for s in ends + later if s % cfg.eval_interval == 0 or s == cfg.total_steps)
-        saves = sum(1 for s in ends + later if s % cfg.checkpoint_interval == 0 or s == cfg.total_steps)
-        return chunks * self.chunk_s + evals * (self.eval_s or 0.0) + saves * (self.save_s or 0.0)
+
+        def cost(first_chunk: int) -> float:  # chunks first_chunk.. of one group, with their events
+            ends = [cfg.chunk_end_step(c) for c in range(first_chunk, cfg.num_chunks)]
+            evals = sum(1 for s in ends if s % cfg.eval_interval == 0 or s == cfg.total_steps)
+            saves = sum(1 for s in ends if s % cfg.checkpoint_interval == 0 or s == cfg.total_steps)
+            return len(ends) * self.chunk_s + evals * (self.eval_s or 0.0) + saves * (self.save_s or 0.0)
+
+        return cost(next_chunk) + (self.num_groups - group_index - 1) * cost(0)
 
 
 def _cost_lines(cfg: TrainConfig, elapsed_s: float, remaining_s: float, backend: str) -> list[str]:
