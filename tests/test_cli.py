@@ -353,3 +353,27 @@ def test_the_run_says_where_it_runs_and_what_it_will_cost(run, capsys, tmp_path)
     assert status == 0
     assert "backend: cpu" in err or "backend: gpu" in err
     assert "estimate: the whole run (2 seed(s) x 192 steps) takes ~" in err
+
+
+def test_resume_falls_back_past_a_damaged_checkpoint_and_says_so(run, capsys, tmp_path, monkeypatch):
+    """Before: 4 KB of random bytes in a data file restored silently (and the run then hung). Now the
+    file digests catch it; the run says so in one line (also with --quiet) and uses the one before."""
+    args = [*SMOKE, "--steps", "256", "--set", "checkpoint_interval=64"]
+    out, full = tmp_path / "run", tmp_path / "full"
+    assert call(run, capsys, *args, "--out", str(full))[0] == 0
+    original = train_mod.train
+    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=3))
+    assert call(run, capsys, *args, "--out", str(out))[0] == 1
+    monkeypatch.setattr(train_mod, "train", original)
+    assert checkpoint_steps(out) == [128, 192]
+    data = max((p for p in (out / "checkpoints" / "group_0" / "192").rglob("*") if p.is_file()),
+               key=lambda p: p.stat().st_size)  # fmt: skip
+    damaged = bytearray(data.read_bytes())
+    damaged[len(damaged) // 2] ^= 0xFF
+    data.write_bytes(bytes(damaged))
+    status, stdout, err = call(run, capsys, "--resume", str(out), "--quiet")
+    assert status == 0 and "final return" in stdout
+    assert err.strip().splitlines() == [
+        line for line in err.strip().splitlines() if "group_0/192 is damaged" in line and "step 128" in line
+    ] and err.strip()
+    assert files_of(out, "metrics") == files_of(full, "metrics")  # recomputed from step 128, exactly

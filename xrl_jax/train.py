@@ -22,6 +22,7 @@ draws a progress bar. Seeds that do not fit the device memory run in groups (:fu
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -1177,6 +1178,7 @@ def train(
     trainer: Trainer | None = None,
     stop_after_chunks: int | None = None,
     stop: StopController | None = None,
+    warn=None,
 ) -> dict[str, Any] | None:
     """Run (or continue) the whole experiment into ``out``; returns the summary.
 
@@ -1194,13 +1196,17 @@ def train(
     chunk boundary with a checkpoint, raising :class:`~xrl_jax.interrupts.RunInterrupted`.
     ``stop_after_chunks`` stops (returning None) after that many chunks of this session, as an
     interruption would; ``resume=True`` continues from the newest good checkpoint of each group.
+    ``log`` takes progress lines; ``warn`` (default: standard error, also when ``log`` is silent)
+    takes what the user must see: damaged checkpoints, too little disk, a run longer than a day.
     """
     out = Path(out)
+    if warn is None:
+        warn = functools.partial(print, file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     with RunLock(out):
         remove_leftovers(out)
         try:
-            return _HostLoop(cfg, out, trainer, log, progress, stop).run(resume, stop_after_chunks)
+            return _HostLoop(cfg, out, trainer, log, warn, progress, stop).run(resume, stop_after_chunks)
         except OSError as err:
             if not is_disk_full(err):
                 raise
@@ -1218,8 +1224,8 @@ class _HostLoop:
     """The host side of :func:`train`: seed groups one after another, chunk after chunk, and
     between chunks the metric lines, the health check, evaluation and checkpoints."""
 
-    def __init__(self, cfg: TrainConfig, out: Path, trainer: Trainer | None, log, progress: bool, stop):
-        self.cfg, self.out, self.log, self.stop = cfg, out, log, stop
+    def __init__(self, cfg: TrainConfig, out: Path, trainer: Trainer | None, log, warn, progress: bool, stop):
+        self.cfg, self.out, self.log, self.warn, self.stop = cfg, out, log, warn, stop
         self.paths = run_paths(out)
         for key in ("metrics", "eval", "checkpoints"):
             self.paths[key].mkdir(parents=True, exist_ok=True)
@@ -1273,18 +1279,18 @@ class _HostLoop:
         needed = 3 * len(groups[0]) * (per_seed["buffer"] + per_seed["agent"] + per_seed["env"])
         free = disk_free_bytes(self.out)
         if free < needed:
-            log(f"warning: {free / 1e9:.1f} GB free on the disk of {self.out}, but the checkpoints of a "
-                f"seed group need up to {needed / 1e9:.1f} GB")  # fmt: skip
+            self.warn(f"warning: {free / 1e9:.1f} GB free on the disk of {self.out}, but the checkpoints "
+                      f"of a seed group need up to {needed / 1e9:.1f} GB")  # fmt: skip
         return plan
 
-    def _log_above_bar(self, line: str) -> None:
+    def _above_bar(self, write, line: str) -> None:
         if self.bar is None:
-            self.log(line)
+            write(line)
             return
         from tqdm import tqdm
 
         with tqdm.external_write_mode(file=sys.stderr):
-            self.log(line)
+            write(line)
 
     def _kept(self, step: int, group_index: int) -> str:
         """What a resume would continue from, in words."""
@@ -1298,7 +1304,7 @@ class _HostLoop:
         ckpt = Checkpointer(paths["checkpoints"] / f"group_{group_index}")
         try:
             state, next_chunk = _restore_group(
-                cfg, trainer, ckpt, seeds, group_index, self.fingerprint, resume, self.log
+                cfg, trainer, ckpt, seeds, group_index, self.fingerprint, resume, self.log, self.warn
             )
             saved_step = cfg.chunk_end_step(next_chunk - 1) if next_chunk else 0
             metric_steps, eval_steps = _expected_rows(cfg, next_chunk)
@@ -1390,8 +1396,11 @@ class _HostLoop:
         if not clock.estimated and clock.chunk_s is not None:
             clock.estimated = True
             remaining = clock.remaining_s(group_index, chunk_index + 1)
-            for line in _cost_lines(cfg, time.perf_counter() - self.start_time, remaining, self.backend):
-                self._log_above_bar(line)
+            so_far = time.perf_counter() - self.start_time
+            estimate, *warnings = _cost_lines(cfg, so_far, remaining, self.backend)
+            self._above_bar(self.log, estimate)
+            for line in warnings:
+                self._above_bar(self.warn, line)
         return state, saved_step
 
     def _evaluate(self, state: RunState, seeds: list[int], step: int) -> RunState:
@@ -1436,7 +1445,7 @@ class _HostLoop:
         return summary
 
 
-def _restore_group(cfg, trainer, ckpt, seeds, group_index, fingerprint, resume, log):
+def _restore_group(cfg, trainer, ckpt, seeds, group_index, fingerprint, resume, log, warn):
     """``(state or None, next_chunk)`` of a seed group: its newest good checkpoint when resuming."""
     if not resume or ckpt.latest_step() is None:
         return None, 0
@@ -1459,7 +1468,7 @@ def _restore_group(cfg, trainer, ckpt, seeds, group_index, fingerprint, resume, 
             return f"the agent's {_first_nonfinite_leaf(state.agent)} is not finite"
         return None
 
-    state, meta = ckpt.restore_newest_good(trainer.abstract_state(len(seeds)), check, log)
+    state, meta = ckpt.restore_newest_good(trainer.abstract_state(len(seeds)), check, warn)
     log(f"resuming seed group {group_index + 1} from its checkpoint at step {meta['step']:,}")
     return state, int(meta["next_chunk"])
 
