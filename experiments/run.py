@@ -260,14 +260,14 @@ def _train(args, argv, cfg, out: Path, stop) -> int:
     from xrl_jax import evaluate as evaluate_mod
     from xrl_jax import train as train_mod
 
-    resume_command = f"python experiments/run.py --resume {out}"
-    stop.resume_hint = resume_command
     log = (lambda *a, **k: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr))
     if args.resume is None:
         document = evaluate_mod.config_document(
             cfg, [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)]
         )
         train_mod.write_atomic(out / "config.json", json.dumps(document, indent=2, sort_keys=True) + "\n")
+    resume_command = f"python experiments/run.py --resume {out}"
+    stop.resume_hint = resume_command  # from now on the folder can be resumed
     log(
         f"run.py: {cfg.env}/{cfg.algo} preset {cfg.preset}, "
         f"{cfg.num_seeds} seed(s) x {cfg.total_steps} steps -> {out}"

@@ -235,8 +235,8 @@ def check_history(path: Path, expected_steps: list[int], what: str) -> None:
     else:
         found = f"lacks {len(missing)} of its {len(expected_steps)} {what} rows (steps {_span(missing)})"
     raise RunFolderError(
-        f"cannot resume: {path.parent.name}/{path.name} {found}, which the checkpoint at step "
-        f"{expected_steps[-1]} does not contain; restore the file from a copy or start a new run with --out"
+        f"cannot resume: {path.parent.name}/{path.name} {found}; rows up to the checkpoint (step "
+        f"{expected_steps[-1]}) cannot be recomputed: restore the file or start a new run with --out"
     )
 
 
