@@ -1232,6 +1232,8 @@ class _HostLoop:
         self.start_time = time.perf_counter()
         if stop is not None:
             stop.idle()
+        self.backend = backend_summary()
+        log(f"backend: {self.backend}")
         self.trainer = get_trainer(cfg) if trainer is None else trainer
         self.progress = progress
         self.bar = None
@@ -1266,8 +1268,6 @@ class _HostLoop:
         else:
             write_atomic(paths["plan"], json.dumps(plan, indent=2, sort_keys=True) + "\n")
         groups, per_seed = plan["groups"], plan["per_seed_bytes"]
-        self.backend = backend_summary()
-        log(f"backend: {self.backend}")
         log(
             f"memory: ~{per_seed['total'] / 1e9:.3f} GB per seed (buffer {per_seed['buffer'] / 1e9:.3f} GB), "
             f"budget {plan['budget_bytes'] / 1e9:.1f} GB ({plan['budget_source']})"
