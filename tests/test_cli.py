@@ -377,3 +377,15 @@ def test_resume_falls_back_past_a_damaged_checkpoint_and_says_so(run, capsys, tm
         line for line in err.strip().splitlines() if "group_0/192 is damaged" in line and "step 128" in line
     ] and err.strip()
     assert files_of(out, "metrics") == files_of(full, "metrics")  # recomputed from step 128, exactly
+
+
+def test_a_disk_too_full_for_the_next_checkpoint_stops_before_orbax(run, capsys, tmp_path, monkeypatch):
+    """Orbax reports a disk that fills during a save from several threads (hundreds of lines); the
+    trainer checks the free space against the state's size first and stops in one line."""
+    out = tmp_path / "tight"
+    monkeypatch.setattr(train_mod, "disk_free_bytes", lambda folder: 40_000)
+    status, _, err = call(run, capsys, *SMOKE, "--out", str(out))
+    assert status == 1, err
+    assert err.strip().splitlines()[-1].startswith("run.py: error: the disk of")
+    assert "40 kB free, but the checkpoint at step 64 needs up to" in err and "--resume" in err
+    assert checkpoint_steps(out) == []

@@ -131,3 +131,12 @@ def test_the_estimate_scales_the_first_updating_chunk_and_warns_beyond_a_day():
     clock.observe_chunk(0, seconds=1.0)  # the quick preset's first chunk is all warm-up
     assert clock.chunk_s is None
 
+
+
+def test_sizes_read_at_any_scale():
+    assert [resources.format_bytes(n) for n in (512, 40_000, 1.234e7, 4.56e9, 1.2e12)] == [
+        "512 B", "40 kB", "12.3 MB", "4.56 GB", "1200 GB",
+    ]  # fmt: skip
+    assert [resources.format_duration(s) for s in (42, 780, 5.2 * 3600, 23 * 86400)] == [
+        "42 s", "13 min", "5.2 h", "23 days",
+    ]  # fmt: skip

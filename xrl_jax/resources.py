@@ -106,6 +106,15 @@ def _cpu_model() -> str:
     return platform.processor() or "unknown model"
 
 
+def format_bytes(count: float) -> str:
+    """``512 B``, ``40.0 kB``, ``12.3 MB``, ``4.56 GB``: three significant digits at any size."""
+    for unit, size in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if abs(count) >= size:
+            value = count / size
+            return f"{value:.3g} {unit}" if value < 1000 else f"{value:.0f} {unit}"
+    return f"{count:.0f} B"
+
+
 def format_duration(seconds: float) -> str:
     """``42 s``, ``13 min``, ``5.2 h``, ``23 days``: the precision a plan needs."""
     if seconds < 90:

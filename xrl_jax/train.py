@@ -44,7 +44,13 @@ from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_add_packed, buffer_i
 from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError
 from xrl_jax.config import ALGOS, AgentConfig
 from xrl_jax.interrupts import RunInterrupted, StopController
-from xrl_jax.resources import backend_summary, disk_free_bytes, format_duration, host_memory_available
+from xrl_jax.resources import (
+    backend_summary,
+    disk_free_bytes,
+    format_bytes,
+    format_duration,
+    host_memory_available,
+)
 from xrl_jax.run_folder import (
     RunLock,
     append_lines,
@@ -993,8 +999,8 @@ def plan_memory(
     fit = (budget_bytes - shared) // max(sizes["total"], 1)
     if fit < 1:
         raise MemoryPlanError(
-            f"one seed needs about {sizes['total'] / 1e9:.2f} GB (buffer {sizes['buffer'] / 1e9:.2f} GB) "
-            f"but the budget ({source}) is {budget_bytes / 1e9:.2f} GB; "
+            f"one seed needs about {format_bytes(sizes['total'])} (buffer {format_bytes(sizes['buffer'])}) "
+            f"but the budget ({source}) is {format_bytes(budget_bytes)}; "
             "reduce buffer_size or the network widths with --set"
         )
     group = min(cfg.num_seeds, int(fit))
@@ -1207,11 +1213,11 @@ def train(
         remove_leftovers(out)
         try:
             return _HostLoop(cfg, out, trainer, log, warn, progress, stop).run(resume, stop_after_chunks)
-        except OSError as err:
+        except Exception as err:  # orbax reports a full disk as ValueError("RESOURCE_EXHAUSTED ...")
             if not is_disk_full(err):
                 raise
             raise DiskFullError(
-                f"the disk of {out} is full ({err.strerror or err}); committed checkpoints are intact: "
+                f"the disk of {out} is full (No space left on device); committed checkpoints are intact: "
                 f"free some space and continue with --resume {out}"
             ) from None
 
@@ -1240,6 +1246,7 @@ class _HostLoop:
         self.timing = {"compile_s": 0.0, "train_s": 0.0, "eval_s": 0.0, "checkpoint_s": 0.0, "env_steps": 0}
         self.fingerprint = config_fingerprint(cfg)
         self.chunks_left: int | None = None
+        self.saved_step = 0  # the newest checkpoint of the running seed group
 
     # ---- the run ------------------------------------------------------------------------------
     def run(self, resume: bool, stop_after_chunks: int | None) -> dict[str, Any] | None:
@@ -1268,10 +1275,9 @@ class _HostLoop:
         else:
             write_atomic(paths["plan"], json.dumps(plan, indent=2, sort_keys=True) + "\n")
         groups, per_seed = plan["groups"], plan["per_seed_bytes"]
-        log(
-            f"memory: ~{per_seed['total'] / 1e9:.3f} GB per seed (buffer {per_seed['buffer'] / 1e9:.3f} GB), "
-            f"budget {plan['budget_bytes'] / 1e9:.1f} GB ({plan['budget_source']})"
-        )
+        total, buffer = format_bytes(per_seed["total"]), format_bytes(per_seed["buffer"])
+        budget = format_bytes(plan["budget_bytes"])
+        log(f"memory: ~{total} per seed (buffer {buffer}), budget {budget} ({plan['budget_source']})")
         if len(groups) > 1:
             log(f"memory: {cfg.num_seeds} seeds do not fit at once; running {len(groups)} groups of up to "
                 f"{len(groups[0])} seeds one after another")  # fmt: skip
@@ -1279,8 +1285,8 @@ class _HostLoop:
         needed = 3 * len(groups[0]) * (per_seed["buffer"] + per_seed["agent"] + per_seed["env"])
         free = disk_free_bytes(self.out)
         if free < needed:
-            self.warn(f"warning: {free / 1e9:.1f} GB free on the disk of {self.out}, but the checkpoints "
-                      f"of a seed group need up to {needed / 1e9:.1f} GB")  # fmt: skip
+            self.warn(f"warning: {format_bytes(free)} free on the disk of {self.out}, but the checkpoints "
+                      f"of a seed group need up to {format_bytes(needed)}")  # fmt: skip
         return plan
 
     def _above_bar(self, write, line: str) -> None:
@@ -1306,17 +1312,18 @@ class _HostLoop:
             state, next_chunk = _restore_group(
                 cfg, trainer, ckpt, seeds, group_index, self.fingerprint, resume, self.log, self.warn
             )
-            saved_step = cfg.chunk_end_step(next_chunk - 1) if next_chunk else 0
+            resumed_step = cfg.chunk_end_step(next_chunk - 1) if next_chunk else 0
+            self.saved_step = resumed_step
             metric_steps, eval_steps = _expected_rows(cfg, next_chunk)
             for seed in seeds:  # what the checkpoint continues must still be on disk
                 check_history(paths["metrics"] / f"seed_{seed}.jsonl", metric_steps, "metric")
                 check_history(paths["eval"] / f"seed_{seed}.jsonl", eval_steps, "evaluation")
             for seed in seeds:  # drop anything written after the checkpoint (or everything, when fresh)
-                truncate_lines(paths["metrics"] / f"seed_{seed}.jsonl", saved_step)
-                truncate_lines(paths["eval"] / f"seed_{seed}.jsonl", saved_step)
-            self.done_steps += saved_step * len(seeds)
+                truncate_lines(paths["metrics"] / f"seed_{seed}.jsonl", resumed_step)
+                truncate_lines(paths["eval"] / f"seed_{seed}.jsonl", resumed_step)
+            self.done_steps += resumed_step * len(seeds)
             if self.stop is not None:
-                self.stop.keep(self._kept(saved_step, group_index))
+                self.stop.keep(self._kept(resumed_step, group_index))
             if next_chunk >= cfg.num_chunks:
                 return
             if state is None:
@@ -1328,7 +1335,7 @@ class _HostLoop:
                 self.bar = _progress_bar(cfg.total_steps * cfg.num_seeds, self.done_steps, self.progress)
             self.clock.last_save = time.monotonic()
             for chunk_index in range(next_chunk, cfg.num_chunks):
-                state, saved_step = self._chunk(state, ckpt, group_index, seeds, chunk_index, saved_step)
+                state = self._chunk(state, ckpt, group_index, seeds, chunk_index)
         finally:
             ckpt.close()
 
@@ -1342,9 +1349,9 @@ class _HostLoop:
         self.timing["compile_s"] += seconds
         self.log(f"compiled in {seconds:.0f} s")
 
-    def _chunk(self, state, ckpt, group_index, seeds, chunk_index, saved_step) -> tuple[RunState, int]:
-        """Run one chunk and everything the host does after it; returns the state and the newest
-        checkpointed step."""
+    def _chunk(self, state, ckpt, group_index, seeds, chunk_index) -> RunState:
+        """Run one chunk and everything the host does after it (``self.saved_step`` follows the
+        newest checkpoint of the group)."""
         cfg, paths, stop, clock = self.cfg, self.paths, self.stop, self.clock
         if self.chunks_left is not None:
             if self.chunks_left <= 0:
@@ -1370,18 +1377,19 @@ class _HostLoop:
 
         diverged = divergence_message(report, seeds, step, self.trainer.loss_names, agent_of_row)
         if diverged:
+            kept = self._kept(self.saved_step, group_index)
             raise DivergenceError(
-                f"{diverged}; stopped, and {self._kept(saved_step, group_index)} (resuming would diverge "
-                "again: start a new run with other settings, e.g. lower actor_lr and critic_lr)"
+                f"{diverged}; stopped, and {kept} (resuming would diverge again: start a new run with "
+                "other settings, e.g. lower actor_lr and critic_lr)"
             )
         if step % cfg.eval_interval == 0 or step == cfg.total_steps:
             state = self._evaluate(state, seeds, step)
         due = step % cfg.checkpoint_interval == 0 or step == cfg.total_steps or clock.checkpoint_due_by_time()
         if due or (stop is not None and stop.requested is not None):
-            saved_step = self._save(ckpt, state, seeds, chunk_index, step, group_index)
-        if stop is not None and stop.requested is not None and saved_step != step:
+            self._save(ckpt, state, seeds, chunk_index, step, group_index)
+        if stop is not None and stop.requested is not None and self.saved_step != step:
             # the signal arrived during the evaluation or the save
-            saved_step = self._save(ckpt, state, seeds, chunk_index, step, group_index)
+            self._save(ckpt, state, seeds, chunk_index, step, group_index)
         self.done_steps += collected
         if self.bar is not None:
             name = "rollout/avg_episode_return"
@@ -1391,7 +1399,7 @@ class _HostLoop:
             self.bar.update(collected)
         append_lines(paths["timing"], [{"group": group_index, "step": step, "seconds": elapsed}])
         if stop is not None and stop.requested is not None:
-            raise RunInterrupted(stop.requested, self._kept(saved_step, group_index))
+            raise RunInterrupted(stop.requested, self._kept(self.saved_step, group_index))
         clock.observe_chunk(chunk_index, elapsed)
         if not clock.estimated and clock.chunk_s is not None:
             clock.estimated = True
@@ -1401,7 +1409,7 @@ class _HostLoop:
             self._above_bar(self.log, estimate)
             for line in warnings:
                 self._above_bar(self.warn, line)
-        return state, saved_step
+        return state
 
     def _evaluate(self, state: RunState, seeds: list[int], step: int) -> RunState:
         from xrl_jax import evaluate as evaluate_mod
@@ -1418,15 +1426,25 @@ class _HostLoop:
             append_lines(self.paths["eval"] / f"seed_{seed}.jsonl", [line])
         return state
 
-    def _save(self, ckpt, state, seeds, chunk_index: int, step: int, group_index: int) -> int:
+    def _save(self, ckpt, state, seeds, chunk_index: int, step: int, group_index: int) -> None:
+        # A checkpoint can take up to the state's raw size on disk (compression helps only while the
+        # buffer is empty). Checked first, because orbax reports a disk that fills during the save
+        # from several threads at once.
+        needed, free = _tree_bytes(state), disk_free_bytes(ckpt.directory)
+        if free < needed:
+            raise DiskFullError(
+                f"the disk of {self.out} has {format_bytes(free)} free, but the checkpoint at step {step:,} "
+                f"needs up to {format_bytes(needed)}; {self._kept(self.saved_step, group_index)}: free some "
+                f"space and continue with --resume {self.out}"
+            )
         tic = time.perf_counter()
         meta = {"next_chunk": chunk_index + 1, "seeds": seeds, "step": step, "config": self.fingerprint}
         ckpt.save(step, state, meta)
         self.clock.saved(time.perf_counter() - tic)
         self.timing["checkpoint_s"] += self.clock.save_s
+        self.saved_step = step
         if self.stop is not None:
             self.stop.keep(self._kept(step, group_index))
-        return step
 
     def _summarise(self) -> dict[str, Any]:
         from xrl_jax import evaluate as evaluate_mod
