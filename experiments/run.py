@@ -1,7 +1,7 @@
 """Train SAC / DSAC / XSAC / XDSAC on a CarEnv scenario: ``python experiments/run.py --env tracking``.
 
 All seeds of a run train in one process: the whole SAC loop is one compiled chunk, vmapped over
-seeds (see ``xrl_jax/train.py``). Results land in one folder (``--out``) that ``--resume`` can
+seeds (see ``xrl_jax/train/``). Results land in one folder (``--out``) that ``--resume`` can
 continue; a stopped and resumed run gives exactly the metrics of an uninterrupted one.
 """
 
@@ -195,8 +195,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(args, argv, stop) -> int:
-    from xrl_jax.run_folder import RunFolderError, RunLock, holds_results
     from xrl_jax.train import ConfigError, TrainConfig
+    from xrl_jax.train.run_folder import RunFolderError, RunLock, holds_results
 
     given_any = any(
         v is not None for v in (args.env, args.algo, args.seeds, args.steps, args.preset, args.set)
@@ -253,8 +253,8 @@ def _train(args, argv, cfg, out: Path, stop) -> int:
     """Write the run's config (a new run) and train; every failure ends in one line and a status."""
     from xrl_jax.checkpoint import NoGoodCheckpointError
     from xrl_jax.interrupts import RunInterrupted, exit_status
-    from xrl_jax.run_folder import RunFolderError
     from xrl_jax.train import ConfigError, DiskFullError, DivergenceError, MemoryPlanError
+    from xrl_jax.train.run_folder import RunFolderError
 
     enable_compilation_cache()
     from xrl_jax import evaluate as evaluate_mod

@@ -269,7 +269,7 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_not_in_the_way(run, 
     copy = tmp_path / "locked"
     shutil.copytree(smoke_run, copy)
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from xrl_jax.run_folder import RunLock; "
+        [sys.executable, "-c", "import sys, time; from xrl_jax.train.run_folder import RunLock; "
          "lock = RunLock(sys.argv[1]).acquire(); print('held', flush=True); time.sleep(120)", str(copy)],
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
@@ -383,7 +383,9 @@ def test_a_disk_too_full_for_the_next_checkpoint_stops_before_orbax(run, capsys,
     """Orbax reports a disk that fills during a save from several threads (hundreds of lines); the
     trainer checks the free space against the state's size first and stops in one line."""
     out = tmp_path / "tight"
-    monkeypatch.setattr(train_mod, "disk_free_bytes", lambda folder: 40_000)
+    from xrl_jax.train import loop
+
+    monkeypatch.setattr(loop, "disk_free_bytes", lambda folder: 40_000)
     status, _, err = call(run, capsys, *SMOKE, "--out", str(out))
     assert status == 1, err
     assert err.strip().splitlines()[-1].startswith("run.py: error: the disk of")

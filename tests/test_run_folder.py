@@ -6,7 +6,9 @@ import json
 import pytest
 
 from xrl_jax import resources
-from xrl_jax.run_folder import (
+from xrl_jax.train import resolve_config
+from xrl_jax.train.loop import CHECKPOINT_TIME_SHARE, _cost_lines, _RunClock
+from xrl_jax.train.run_folder import (
     RunFolderError,
     RunLock,
     check_history,
@@ -16,7 +18,6 @@ from xrl_jax.run_folder import (
     remove_leftovers,
     truncate_lines,
 )
-from xrl_jax.train import CHECKPOINT_TIME_SHARE, _cost_lines, _RunClock, resolve_config
 
 
 def test_no_data_and_not_finite_are_different_values():

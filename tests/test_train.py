@@ -9,6 +9,8 @@ from train_support import prepare_cache
 from xrl_jax import train as T
 from xrl_jax.config import AgentConfig
 from xrl_jax.train import ConfigError, MemoryPlanError, TrainConfig, parse_overrides, resolve_config
+from xrl_jax.train.episodes import window_add, window_init, window_means
+from xrl_jax.train.memory import tree_bytes
 
 # ---------------------------------------------------------------------------------------------
 # Configuration
@@ -111,15 +113,15 @@ def test_chunk_bookkeeping():
 
 
 def test_episode_window_keeps_the_last_hundred_finished_episodes():
-    window = T._window_init(jnp.float32)
-    add = jax.jit(T._window_add)
+    window = window_init(jnp.float32)
+    add = jax.jit(window_add)
     returns = []
     for step in range(60):
         done = jnp.array([step % 2 == 0, True, step % 3 == 0])
         value = jnp.array([step, 1000 + step, 2000 + step], jnp.float32)
         window = add(window, done, value, jnp.ones(3, jnp.int32), done & (value > 2000), jnp.zeros(3))
         returns += [float(v) for v, d in zip(value, done, strict=True) if d]
-    means, filled = jax.device_get(T._window_means(window))
+    means, filled = jax.device_get(window_means(window))
     assert filled
     assert int(window.count) == len(returns)
     assert means["rollout/avg_episode_return"] == pytest.approx(np.mean(returns[-100:]), rel=1e-6)
@@ -128,7 +130,7 @@ def test_episode_window_keeps_the_last_hundred_finished_episodes():
 
 
 def test_empty_window_has_no_data():
-    means, filled = T._window_means(T._window_init(jnp.float32))
+    means, filled = window_means(window_init(jnp.float32))
     assert not filled and int(means["rollout/episodes"]) == 0
 
 
@@ -152,7 +154,7 @@ def test_memory_plan_groups_seeds_or_refuses(smoke_trainer):
     # Buffer: one stored observation per transition (compact layout) plus one spare row.
     rows = -(-cfg.buffer_size // cfg.num_envs) + 1
     assert sizes["buffer"] >= rows * cfg.num_envs * (6 + 25 * 4) * 4
-    shared = T._tree_bytes((trainer.env_params, trainer.eval_params))
+    shared = tree_bytes((trainer.env_params, trainer.eval_params))
     five = cfg.replace(num_seeds=5)
     plan = T.plan_memory(trainer, five, budget_bytes=shared + 2 * sizes["total"] + 1)
     assert plan["groups"] == [[0, 1, 2], [3, 4]] or plan["groups"] == [[0, 1], [2, 3], [4]]

@@ -1,0 +1,53 @@
+"""End-to-end vectorised training: the whole SAC loop in one compiled ``lax.scan`` chunk, vmapped
+over seeds, driven by a host loop between chunks.
+
+Modules, by what they hold:
+
+* :mod:`~xrl_jax.train.config`: :class:`TrainConfig`, the presets' train-loop settings and
+  :func:`resolve_config` (preset, explicit arguments, ``--set`` overrides);
+* :mod:`~xrl_jax.train.tracks`: the training and evaluation track banks, cached on disk;
+* :mod:`~xrl_jax.train.episodes`: the rolling window of finished episodes (rollout metrics);
+* :mod:`~xrl_jax.train.chunk`: the run state, the compiled chunk and its report (:func:`make_train`);
+* :mod:`~xrl_jax.train.memory`: bytes per seed and the seed groups that fit;
+* :mod:`~xrl_jax.train.run_folder`: the results folder (layout, crash-safe writes, lock, resume checks);
+* :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`).
+"""
+
+from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, make_train
+from xrl_jax.train.config import (
+    ENVS,
+    PRESETS,
+    ConfigError,
+    TrainConfig,
+    parse_overrides,
+    resolve_config,
+)
+from xrl_jax.train.loop import DiskFullError, DivergenceError, train
+from xrl_jax.train.memory import MemoryPlanError, estimate_seed_bytes, plan_memory
+from xrl_jax.train.run_folder import write_atomic
+from xrl_jax.train.tracks import cache_dir, cached_track_bank, make_envs, track_cache_path
+
+__all__ = [
+    "ENVS",
+    "PRESETS",
+    "ChunkReport",
+    "ConfigError",
+    "DiskFullError",
+    "DivergenceError",
+    "MemoryPlanError",
+    "RunState",
+    "TrainConfig",
+    "Trainer",
+    "cache_dir",
+    "cached_track_bank",
+    "estimate_seed_bytes",
+    "get_trainer",
+    "make_envs",
+    "make_train",
+    "parse_overrides",
+    "plan_memory",
+    "resolve_config",
+    "track_cache_path",
+    "train",
+    "write_atomic",
+]

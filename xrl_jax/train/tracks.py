@@ -1,0 +1,78 @@
+"""Environments for a run: the training track bank and the fixed evaluation tracks, cached on disk
+(generating even a few tracks compiles for ~30 s on CPU)."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from xrl_jax.train.config import TrainConfig
+
+
+def cache_dir() -> Path:
+    """Where generated track banks (and JAX's compilation cache, see run.py) are kept."""
+    return Path(os.environ.get("XRL_JAX_CACHE_DIR", Path.home() / ".cache" / "xrl-jax"))
+
+
+def _generator_fingerprint() -> str:
+    import envs.track
+
+    return hashlib.sha256(Path(envs.track.__file__).read_bytes()).hexdigest()[:12]
+
+
+def track_cache_path(seed: int, size: int) -> Path:
+    """The cache file of the bank ``(seed, size)`` for this generator version, backend and dtype."""
+    dtype = jnp.result_type(float).name
+    name = f"tracks-{_generator_fingerprint()}-{jax.default_backend()}-{dtype}-{seed}-{size}.npz"
+    return cache_dir() / "tracks" / name
+
+
+def cached_track_bank(seed: int, size: int):
+    """``size`` generated tracks from ``seed``, cached on disk (generation compiles for ~30 s on CPU).
+
+    The file name carries a hash of the generator's source and the backend, so a changed generator
+    never serves stale tracks. Writes are atomic (temporary file + rename).
+    """
+    from envs.track import Track, make_track_bank
+
+    path = track_cache_path(seed, size)
+    fields = [f.name for f in dataclasses.fields(Track)]
+    if path.exists():
+        try:
+            with np.load(path) as data:
+                return Track(**{k: jnp.asarray(data[k]) for k in fields})
+        except (OSError, KeyError, ValueError):
+            pass  # unreadable cache entry: regenerate below
+    bank = jax.device_get(make_track_bank(jax.random.PRNGKey(seed), size))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".tmp{os.getpid()}.npz")
+        np.savez(tmp, **{k: np.asarray(getattr(bank, k)) for k in fields})
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a read-only cache only costs time
+    return jax.tree.map(jnp.asarray, bank)
+
+
+def make_envs(cfg: TrainConfig):
+    """``(env, train_params, eval_params)``: the training bank and the fixed evaluation tracks
+    (Intersection: curriculum for training, 8 vehicles for evaluation, docs/carenv-intersection.md §8.8)."""
+    import envs
+
+    if cfg.multi_agent:
+        env, params = envs.make(cfg.env_name)
+        return env, params, params.replace(max_vehicles=8)
+    from envs.racing import with_bank
+
+    train_bank = cached_track_bank(cfg.track_seed, cfg.train_tracks)
+    eval_bank = cached_track_bank(cfg.eval_track_seed, cfg.eval_episodes)
+    first = jax.tree.map(lambda leaf: leaf[0], train_bank)
+    env, params = envs.make(cfg.env_name, track=first)  # a user track: no generation here
+    attach = jax.jit(with_bank)  # the per-track tables, computed in one compiled call
+    return env, attach(params, train_bank), attach(params, eval_bank)
