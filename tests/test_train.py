@@ -205,3 +205,42 @@ def test_quick_preset_learns_on_tracking(tmp_path):
     # Measured (the README's quick start): first evaluation 4.0 and 1.4, final 20.7 and 55.5; single
     # seeds have ended anywhere from 16 to 65, so this only checks clear learning.
     assert final > first + 5.0, (first, final)
+
+
+# ---------------------------------------------------------------------------------------------
+# Compile once: the design rests on one trace of the env step per compiled program
+# ---------------------------------------------------------------------------------------------
+
+
+class TraceCountingEnv:
+    """Delegates to an env and counts the calls of its step: under ``jit`` a Python call is a trace."""
+
+    def __init__(self, env):
+        self._env = env
+        self.step_traces = 0
+
+    def __getattr__(self, name):
+        return getattr(self._env, name)
+
+    def step_env(self, key, state, action, params):
+        self.step_traces += 1
+        return self._env.step_env(key, state, action, params)
+
+    def step(self, key, state, action, params):
+        return self.step_env(key, state, action, params)
+
+
+def test_the_env_step_is_traced_once_for_the_chunk_and_once_for_evaluation(tmp_path):
+    """As Brax's SAC test counts env traces: a run, its resume from a checkpoint and a second run in
+    the same process reuse the compiled chunk and evaluation (a retrace would recompile for minutes)."""
+    prepare_cache(tmp_path / "cache")
+    cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=2, overrides={"eval_interval": "64"})
+    env, params, eval_params = T.make_envs(cfg)
+    counting = TraceCountingEnv(env)
+    trainer = T.make_train(cfg, (counting, params, eval_params))
+    quiet = {"progress": False, "log": lambda *_: None, "trainer": trainer}
+    assert T.train(cfg, tmp_path / "run", stop_after_chunks=2, **quiet) is None
+    assert counting.step_traces == 2  # the chunk's scan body and the evaluation's loop body
+    assert T.train(cfg, tmp_path / "run", resume=True, **quiet)["complete"]
+    assert T.train(cfg.replace(seed=3), tmp_path / "other", **quiet)["complete"]
+    assert counting.step_traces == 2
