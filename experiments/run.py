@@ -14,9 +14,8 @@ import os
 import sys
 from pathlib import Path
 
-ENVS = ("country_road", "tracking", "intersection")  # = xrl_jax.train.ENVS (kept here: --help needs no jax)
-ALGOS = ("sac", "dsac", "xsac", "xdsac")
-PRESETS = ("paper", "quick", "smoke")
+from xrl_jax.config import ALGOS, ENVS, PRESETS, settings_help  # jax-free: --help stays fast
+
 ROOT = Path(__file__).resolve().parents[1]
 EXIT_DIVERGED = 3
 
@@ -52,13 +51,10 @@ presets:
          buffer 1.5e7 agent transitions, batch 512, 2 envs, re-initialisation every 500,001 steps,
          evaluation on 20 episodes of 60 s with 8 vehicles); quick = 20k env steps, width 64
 
---set KEY=VALUE accepts any TrainConfig field (num_envs, warmup_steps, batch_size, buffer_size,
-  log_interval, eval_interval, eval_episodes, checkpoint_interval, train_tracks, track_seed,
-  eval_track_seed, seed, reinit_steps, max_group_size, memory_budget_gb, checkpoint_minutes = also
-  checkpoint after this much wall time, default 30) or any agent field (actor_lr,
-  critic_lr, gamma, tau, kappa, target_entropy, actor_width, critic_depth, truncation,
-  lr_decay_updates = linear decay of the learning rates to zero over that many updates, ...;
-  'agent.' prefix optional). Unknown keys fail with the list of allowed ones.
+--set KEY=VALUE overrides one setting (repeatable); values are parsed with the setting's type
+  (integers also as 1e6, optional ones as none). Unknown keys fail with the list of allowed ones.
+
+{settings}
 
 results folder:
   config.json (resolved config, versions, git commit), metrics/seed_<i>.jsonl (every
@@ -85,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="run.py",
         description="Train explainable mixture-policy agents (and SAC baselines) on CarEnv scenarios, "
         "all seeds of a run vectorised in one process.",
-        epilog=EPILOG,
+        epilog=EPILOG.format(settings=settings_help()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--env", choices=ENVS, default=None, help="scenario to train on (default: tracking)")

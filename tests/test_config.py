@@ -7,18 +7,25 @@ import pytest
 from xrl_jax.config import (
     ALGOS,
     ENVS,
-    PAPER,
+    MAX_VEHICLES,
+    PRESETS,
     AgentConfig,
     apply_overrides,
-    paper_config,
     preset,
 )
 
 
-def test_every_paper_combination_exists():
-    assert set(PAPER) == {(e, a) for e in ENVS for a in ALGOS}
-    for (env, algo), cfg in PAPER.items():
-        assert cfg == paper_config(env, algo) and cfg.algo == algo
+def test_every_preset_combination_exists():
+    for name in PRESETS:
+        for env in ENVS:
+            for algo in ALGOS:
+                assert preset(name, env, algo).algo == algo
+
+
+def test_the_vehicle_slot_count_matches_the_intersection_env():
+    from envs.intersection import MAX_AGENTS
+
+    assert MAX_VEHICLES == MAX_AGENTS
 
 
 @pytest.mark.parametrize(
@@ -35,7 +42,7 @@ def test_every_paper_combination_exists():
     ],
 )
 def test_paper_table(env, algo, lr, actor_depth, critic_depth, extractor):
-    cfg = paper_config(env, algo)
+    cfg = preset("paper", env, algo)
     assert cfg.actor_lr == cfg.critic_lr == lr
     assert cfg.resolved_alpha_lr() == lr  # α uses the critic lr
     assert (cfg.actor_depth, cfg.critic_depth, cfg.actor_width, cfg.critic_width) == (
@@ -75,7 +82,7 @@ def test_smoke_preset_is_tiny_with_paper_optimisation():
 @pytest.mark.parametrize(
     "changes, message",
     [
-        ({"algo": "ppo"}, "valid algos: sac, dsac, xsac, xdsac"),
+        ({"algo": "ppo"}, "unknown algo 'ppo'; allowed: sac, dsac, xsac, xdsac"),
         ({"actor_lr": -1e-4}, "actor_lr must be positive"),
         ({"critic_lr": 0.0}, "critic_lr must be positive"),
         ({"alpha_lr": float("nan")}, "alpha_lr must be a finite number"),
@@ -84,9 +91,9 @@ def test_smoke_preset_is_tiny_with_paper_optimisation():
         ({"kappa": float("inf")}, "kappa must be a finite number"),
         ({"init_alpha": -0.1}, "init_alpha must be positive"),
         ({"actor_width": 0}, "actor_width must be a positive integer"),
-        ({"feature_extractor": "cnn"}, "valid: deepset, flat_pe"),
-        ({"critic_loss": "l1"}, "valid: huber, l2"),
-        ({"truncation": "ignore"}, "valid: drop, bootstrap"),
+        ({"feature_extractor": "cnn"}, "allowed: deepset, flat_pe"),
+        ({"critic_loss": "l1"}, "allowed: huber, l2"),
+        ({"truncation": "ignore"}, "allowed: drop, bootstrap"),
         ({"algo": "xsac", "actor_depth": 2, "weight_depth": 3}, "weight_depth"),
         ({"algo": "xdsac", "duelling": False}, "duelling"),
         ({"epsilon_random": 2.0}, "epsilon_random"),
@@ -110,19 +117,19 @@ def test_negative_kappa_is_allowed_for_the_fig8_sweep():
 
 
 def test_unknown_preset_env_or_field():
-    with pytest.raises(ValueError, match="valid presets: paper, smoke"):
+    with pytest.raises(ValueError, match="unknown preset 'huge'; allowed: paper, quick, smoke"):
         preset("huge", "tracking", "sac")
-    with pytest.raises(ValueError, match="valid envs"):
+    with pytest.raises(ValueError, match="unknown env 'moon'; allowed"):
         preset("paper", "moon", "sac")
-    with pytest.raises(ValueError, match="valid algos"):
-        paper_config("tracking", "td3")
+    with pytest.raises(ValueError, match="unknown algo 'td3'; allowed"):
+        preset("paper", "tracking", "td3")
     with pytest.raises(ValueError, match="unknown field"):
-        paper_config("tracking", "sac").replace(learning_rate=1.0)
+        preset("paper", "tracking", "sac").replace(learning_rate=1.0)
 
 
 def test_overrides_from_text():
     cfg = apply_overrides(
-        paper_config("country_road", "xdsac"),
+        preset("paper", "country_road", "xdsac"),
         {
             "kappa": "-0.01",
             "auto_alpha": "false",
@@ -142,10 +149,10 @@ def test_overrides_from_text():
 
 
 def test_configs_are_frozen_and_hashable():
-    cfg = paper_config("tracking", "xsac")
+    cfg = preset("paper", "tracking", "xsac")
     with pytest.raises(AttributeError):
         cfg.kappa = 0.5  # type: ignore[misc]
-    assert hash(cfg) == hash(paper_config("tracking", "xsac"))
+    assert hash(cfg) == hash(preset("paper", "tracking", "xsac"))
 
 
 @pytest.mark.parametrize(
@@ -154,7 +161,7 @@ def test_configs_are_frozen_and_hashable():
 )
 def test_intersection_paper_table(algo, lr, actor_depth, clip_norm):
     """docs/carenv-intersection.md §8.7; the baseline actors' depth is unspecified there → the critics' 2."""
-    cfg = paper_config("intersection", algo)
+    cfg = preset("paper", "intersection", algo)
     assert "intersection" in ENVS
     assert cfg.actor_lr == cfg.critic_lr == lr and cfg.clip_norm == clip_norm
     assert (cfg.actor_width, cfg.actor_depth, cfg.critic_width, cfg.critic_depth) == (
@@ -180,6 +187,32 @@ def test_intersection_paper_table(algo, lr, actor_depth, clip_norm):
 def test_racing_and_tracking_presets_keep_their_deep_set_and_no_neutral_object():
     for env in ("country_road", "tracking"):
         for algo in ALGOS:
-            cfg = paper_config(env, algo)
+            cfg = preset("paper", env, algo)
             assert (cfg.fe_item_depth, cfg.fe_set_depth, cfg.neutral_object) == (3, 2, False)
             assert cfg.auto_alpha and cfg.clip_norm is None
+
+
+def test_one_parser_for_every_setting():
+    """Before, two parsers disagreed: total_steps=1e6 was accepted and lr_decay_updates=1e6 refused."""
+    from xrl_jax.config import TrainConfig, parse_value
+
+    assert parse_value(TrainConfig, "total_steps", "1e6") == 1_000_000
+    assert parse_value(AgentConfig, "lr_decay_updates", "1e6") == 1_000_000
+    assert parse_value(AgentConfig, "weight_depth", "none") is None
+    assert parse_value(AgentConfig, "duelling", "off") is False
+    for cls, name, text in ((TrainConfig, "num_envs", "2.5"), (AgentConfig, "gamma", "fast"),
+                            (AgentConfig, "auto_alpha", "maybe")):  # fmt: skip
+        with pytest.raises(ValueError, match=f"cannot parse '{text}' for {name}"):
+            parse_value(cls, name, text)
+
+
+def test_the_cli_help_documents_every_setting_from_the_fields():
+    import dataclasses
+
+    from xrl_jax.config import TrainConfig, settings_help
+
+    text = settings_help()
+    settable = [f for f in dataclasses.fields(TrainConfig) if f.name not in
+                ("env", "algo", "preset", "agent", "num_seeds", "total_steps")]  # fmt: skip
+    for field in [*settable, *(f for f in dataclasses.fields(AgentConfig) if f.name != "algo")]:
+        assert f"  {field.name} (" in text and field.metadata["help"].split()[0] in text

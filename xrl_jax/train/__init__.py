@@ -1,10 +1,9 @@
 """End-to-end vectorised training: the whole SAC loop in one compiled ``lax.scan`` chunk, vmapped
-over seeds, driven by a host loop between chunks.
+over seeds, driven by a host loop between chunks. Its configuration (:class:`TrainConfig`,
+:func:`resolve_config`) lives in :mod:`xrl_jax.config` and is re-exported here.
 
 Modules, by what they hold:
 
-* :mod:`~xrl_jax.train.config`: :class:`TrainConfig`, the presets' train-loop settings and
-  :func:`resolve_config` (preset, explicit arguments, ``--set`` overrides);
 * :mod:`~xrl_jax.train.tracks`: the training and evaluation track banks, cached on disk;
 * :mod:`~xrl_jax.train.episodes`: the rolling window of finished episodes (rollout metrics);
 * :mod:`~xrl_jax.train.chunk`: the run state, the compiled chunk and its report (:func:`make_train`);
@@ -13,8 +12,7 @@ Modules, by what they hold:
 * :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`).
 """
 
-from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, make_train
-from xrl_jax.train.config import (
+from xrl_jax.config import (
     ENVS,
     PRESETS,
     ConfigError,
@@ -22,6 +20,7 @@ from xrl_jax.train.config import (
     parse_overrides,
     resolve_config,
 )
+from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, make_train
 from xrl_jax.train.loop import DiskFullError, DivergenceError, train
 from xrl_jax.train.memory import MemoryPlanError, estimate_seed_bytes, plan_memory
 from xrl_jax.train.run_folder import write_atomic

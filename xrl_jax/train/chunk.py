@@ -31,7 +31,7 @@ from flax import struct
 
 from xrl_jax.agents import Agent, AgentState, make_agent
 from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_add_packed, buffer_init, buffer_sample
-from xrl_jax.train.config import HOST_ONLY_FIELDS, TrainConfig
+from xrl_jax.config import HOST_ONLY_FIELDS, TrainConfig
 from xrl_jax.train.episodes import (
     EARLY_TERMINATION_REWARD,
     EpisodeWindow,

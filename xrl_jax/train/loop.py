@@ -17,10 +17,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError
+from xrl_jax.config import HOST_ONLY_FIELDS, ConfigError, TrainConfig
 from xrl_jax.interrupts import RunInterrupted, StopController
 from xrl_jax.resources import backend_summary, disk_free_bytes, format_bytes, format_duration
 from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, tree_all_finite
-from xrl_jax.train.config import HOST_ONLY_FIELDS, ConfigError, TrainConfig
 from xrl_jax.train.memory import plan_memory, tree_bytes
 from xrl_jax.train.run_folder import (
     RunLock,

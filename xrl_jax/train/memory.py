@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Any
 import jax
 import jax.numpy as jnp
 
+from xrl_jax.config import TrainConfig
 from xrl_jax.resources import format_bytes, host_memory_available
-from xrl_jax.train.config import TrainConfig
 
 if TYPE_CHECKING:
     from xrl_jax.train.chunk import Trainer

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from xrl_jax.train.config import TrainConfig
+from xrl_jax.config import TrainConfig
 
 
 def cache_dir() -> Path:
