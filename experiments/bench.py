@@ -24,6 +24,8 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
+from xrl_jax.config import PRESETS
+
 
 def machine_info() -> dict:
     device = jax.devices()[0]
@@ -352,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
         "--widths", nargs="+", type=int, default=[256, 64], help="actor/critic widths (paper: 256)"
     )
     tr_parser.add_argument("--chunks", type=int, default=2, help="timed chunks after the first")
-    tr_parser.add_argument("--preset", default="paper", choices=["paper", "quick", "smoke"])
+    tr_parser.add_argument("--preset", default="paper", choices=PRESETS)
     tr_parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra config overrides")
     args = parser.parse_args(argv)
 

@@ -262,15 +262,10 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         )
         done = terminated | truncated
         new_state = state.replace(
-            agent=agent_state,
-            buffer=buffer,
-            env_state=env_state,
-            obs=next_obs,
-            key=key,
-            **episode_bookkeeping(
-                state, reward, jnp.ones_like(done), done, terminated, info["avg_track_velocity"]
-            ),
-        )
+            agent=agent_state, buffer=buffer, env_state=env_state, obs=next_obs, key=key,
+            **episode_bookkeeping(state, reward, jnp.ones(done.shape, bool), done, terminated,
+                                  info["avg_track_velocity"]),
+        )  # fmt: skip
         out = {
             "reward_sum": jnp.sum(jnp.where(truncated, 0.0, reward)),
             "reward_count": jnp.sum(~truncated, dtype=jnp.int32),
@@ -318,15 +313,10 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         agent_done = acted & (terminated | truncated)
         ended = info["episode_end"]
         new_state = state.replace(
-            agent=agent_state,
-            buffer=buffer,
-            env_state=env_state,
-            obs=next_obs,
-            key=key,
-            **episode_bookkeeping(
-                state, reward, acted, agent_done, terminated, info["mean_velocity"][:, None]
-            ),
-        )
+            agent=agent_state, buffer=buffer, env_state=env_state, obs=next_obs, key=key,
+            **episode_bookkeeping(state, reward, acted, agent_done, terminated,
+                                  info["mean_velocity"][:, None]),
+        )  # fmt: skip
         out = {
             "reward_sum": jnp.sum(reward),
             "reward_count": jnp.sum(acted, dtype=jnp.int32),
