@@ -24,6 +24,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from envs.vehicle import VEHICLE_HALF_LENGTH, VEHICLE_HALF_WIDTH
+
 # ------------------------------------------------------------------------------------------------
 # Constants (§1)
 # ------------------------------------------------------------------------------------------------
@@ -33,8 +35,6 @@ LANE_LENGTH = 50.0
 TURN_RADIUS = 4.5
 ROAD_HALF_WIDTH = 2.5
 SPAWN_OFFSET = 5.0
-VEHICLE_HALF_LENGTH = 1.905
-VEHICLE_HALF_WIDTH = 0.74
 SOFT_PAD_LONG = 0.5
 SOFT_PAD_LAT = 0.25
 SOFT_HALF_LENGTH = VEHICLE_HALF_LENGTH + SOFT_PAD_LONG  # 2.405: soft-collision rectangle (§5.4)

@@ -33,8 +33,9 @@ True. Finite continuous actions outside [-1, 1] are clipped (§4.1), however lar
 
 from __future__ import annotations
 
+import dataclasses
 import functools
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -42,112 +43,22 @@ import numpy as np
 from flax import struct
 
 from envs import actions as actions_mod
-from envs import track as track_mod
 from envs.core import Box, Dict, Discrete, Environment, default_float
+from envs.ring_geometry import (
+    RingTables,
+    TrackView,
+    cone_body_positions,
+    cone_hits,
+    project_point,
+    ring_tables,
+)
 from envs.track import Track
+from envs.track_generator import generate_track
 from envs.vehicle import VehicleParams, VehicleState, odometry_observation, vehicle_step
 
 DONE_NONE, LEFT_TRACK, MAX_TIME, IDLING, NONFINITE_ACTION = 0, 1, 2, 3, 4
-DONE_REASONS = {
-    DONE_NONE: "",
-    LEFT_TRACK: "LeftTrack",
-    MAX_TIME: "MaxTime",
-    IDLING: "Idling",
-    NONFINITE_ACTION: "NonFiniteAction",
-}
-
-# Collision box of the car around the CoG (§1.1) and cone radius (§5.7).
-_BOX_HALF_LENGTH = 1.905
-_BOX_HALF_WIDTH = 0.74
-_CONE_RADIUS = 0.3
-
-
-@struct.dataclass
-class RingTables:
-    """Per-track lookup tables for the hot path, derived from a ``Track`` by :func:`ring_tables`.
-
-    Structure-of-arrays layout on purpose: XLA on CPU vectorises poorly over a trailing axis of 2,
-    and the (N, 2) formulation of the projection ran ~40x slower. Segment i goes from vertex i to
-    vertex i+1 of the padded ring (``Track`` pads with the first point, so padding segments have
-    zero length). ``tangent_*[i]`` is the travel tangent used when the progress lookup lands on
-    index i: minus the direction of the first real (>= 1e-9 m) segment at index >= i (§6.1),
-    or of the last real segment when there is none.
-    """
-
-    start_x: jax.Array
-    start_y: jax.Array
-    end_x: jax.Array
-    end_y: jax.Array
-    edge_x: jax.Array
-    edge_y: jax.Array
-    len2: jax.Array
-    s_start: jax.Array  # cumlen[:-1]
-    s_end: jax.Array  # cumlen[1:]
-    valid: jax.Array  # i < num_points
-    tangent_x: jax.Array
-    tangent_y: jax.Array
-    cone_x: jax.Array
-    cone_y: jax.Array
-    chunk_x: jax.Array  # (MAX_CENTERLINE // CHUNK,) bounding circle of each chunk of segments
-    chunk_y: jax.Array
-    chunk_r: jax.Array  # inflated so that |p - c| - r is a strict lower bound; -inf: empty chunk
-
-
-CHUNK = 16  # segments per chunk of the branch-and-bound projection
-
-
-def _chunk_circles(start, end, valid):
-    """Bounding circles of consecutive chunks of CHUNK segments (centre of the endpoints' bbox)."""
-    shape = (start.shape[0] // CHUNK, CHUNK, 2)
-    xs = jnp.stack([start[:, 0], end[:, 0]], -1).reshape(shape)
-    ys = jnp.stack([start[:, 1], end[:, 1]], -1).reshape(shape)
-    ok = jnp.repeat(valid[:, None], 2, axis=-1).reshape(shape)
-    big = jnp.asarray(jnp.inf, start.dtype)
-    lo_x, hi_x = jnp.min(jnp.where(ok, xs, big), (1, 2)), jnp.max(jnp.where(ok, xs, -big), (1, 2))
-    lo_y, hi_y = jnp.min(jnp.where(ok, ys, big), (1, 2)), jnp.max(jnp.where(ok, ys, -big), (1, 2))
-    any_valid = jnp.any(ok, axis=(1, 2))
-    cx = jnp.where(any_valid, (lo_x + hi_x) / 2, 0)
-    cy = jnp.where(any_valid, (lo_y + hi_y) / 2, 0)
-    spread = jnp.where(ok, (xs - cx[:, None, None]) ** 2 + (ys - cy[:, None, None]) ** 2, 0)
-    radius = jnp.sqrt(jnp.max(spread, (1, 2))) * (1 + 1e-6) + 1e-6  # margin for rounding
-    return cx, cy, jnp.where(any_valid, radius, -jnp.inf)
-
-
-def ring_tables(track: Track) -> RingTables:
-    """Derive the hot-path tables of one (un-batched) track; ``jax.vmap`` it over a bank."""
-    start = track.centerline
-    count = start.shape[0]
-    end = jnp.roll(start, -1, axis=0)
-    edge = end - start
-    len2 = edge[:, 0] * edge[:, 0] + edge[:, 1] * edge[:, 1]
-    index = jnp.arange(count)
-    valid = index < track.num_points
-    seg_len = jnp.sqrt(len2)
-    real = valid & (seg_len > track_mod.TINY_SEGMENT)
-    last_real = count - 1 - jnp.argmax(real[::-1])
-    next_real = jax.lax.cummin(jnp.where(real, index, count), reverse=True)
-    use = jnp.where(next_real < count, next_real, last_real)
-    safe_len = jnp.where(seg_len[use] > 0, seg_len[use], 1.0)
-    chunk_x, chunk_y, chunk_r = _chunk_circles(start, end, valid)
-    return RingTables(
-        start_x=start[:, 0],
-        start_y=start[:, 1],
-        end_x=end[:, 0],
-        end_y=end[:, 1],
-        edge_x=edge[:, 0],
-        edge_y=edge[:, 1],
-        len2=len2,
-        s_start=track.cumlen[:-1],
-        s_end=track.cumlen[1:],
-        valid=valid,
-        tangent_x=-edge[use, 0] / safe_len,
-        tangent_y=-edge[use, 1] / safe_len,
-        cone_x=track.cone_xy[:, 0],
-        cone_y=track.cone_xy[:, 1],
-        chunk_x=chunk_x,
-        chunk_y=chunk_y,
-        chunk_r=chunk_r,
-    )
+# done_reason code -> the original's name (index = code).
+DONE_REASONS = dict(enumerate(("", "LeftTrack", "MaxTime", "Idling", "NonFiniteAction")))
 
 
 @struct.dataclass
@@ -156,13 +67,19 @@ class RacingParams:
 
     ``tracks`` is a bank with a leading axis and ``tables`` its :class:`RingTables` (same axis; use
     :func:`with_bank` / :func:`with_track` to set both). ``track_source`` is static.
+
+    ``start_s``, ``reset_obs`` and ``reset_cache_for`` are a cache of each bank track's start arc
+    length and reset observation, built only by :meth:`RacingEnv.prepare` for the env configuration
+    ``reset_cache_for``. They cannot go stale: ``replace`` of a field they depend on drops them, and
+    reset uses them only for the env they were built for (otherwise it computes the start on the fly).
     """
 
     vehicle: VehicleParams
     tracks: Track | None
     tables: RingTables | None = None
-    start_s: jax.Array | None = None  # (bank,) start arc lengths, from RacingEnv.prepare
-    reset_obs: dict | None = None  # (bank, ...) reset observations, from RacingEnv.prepare
+    start_s: jax.Array | None = None  # (bank,) start arc lengths
+    reset_obs: dict | None = None  # (bank, ...) reset observations
+    reset_cache_for: tuple | None = struct.field(pytree_node=False, default=None)  # RacingEnv._config()
     k_forwards: float = 0.1
     k_base: float = 0.0
     k_center: float = 0.0
@@ -182,6 +99,32 @@ class RacingParams:
     @property
     def bank_size(self) -> int:
         return 0 if self.tracks is None else int(self.tracks.num_points.shape[0])
+
+
+RESET_CACHE_FIELDS = ("start_s", "reset_obs", "reset_cache_for")
+# Fields the reset observation and start arc length do not depend on (rewards and endings only).
+_NOT_IN_RESET = (
+    "k_forwards",
+    "k_base",
+    "k_center",
+    "cone_penalty",
+    "offtrack_reward",
+    "track_width",
+    "idle_speed",
+    "max_steps",
+    "max_idle_steps",
+)
+
+
+def _replace_dropping_cache(self: RacingParams, **updates) -> RacingParams:
+    """``dataclasses.replace`` that drops the reset cache when a field it depends on changes (any field
+    but the cache itself and those of ``_NOT_IN_RESET``, so a new field is covered by default)."""
+    if set(updates) - set(RESET_CACHE_FIELDS) - set(_NOT_IN_RESET):
+        updates = {**dict.fromkeys(RESET_CACHE_FIELDS), **updates}
+    return dataclasses.replace(self, **updates)
+
+
+RacingParams.replace = _replace_dropping_cache  # flax's struct.dataclass installs a plain replace
 
 
 @struct.dataclass
@@ -215,7 +158,7 @@ def with_bank(params: RacingParams, bank: Track) -> RacingParams:
     if not isinstance(bank, Track) or jnp.ndim(bank.num_points) != 1:
         raise ValueError("bank must be a Track with a leading bank axis (see stack_tracks / make_track_bank)")
     tables = jax.jit(jax.vmap(ring_tables))(bank)
-    return params.replace(tracks=bank, tables=tables, start_s=None, reset_obs=None, track_source="bank")
+    return params.replace(tracks=bank, tables=tables, track_source="bank")
 
 
 def with_track(params: RacingParams, track: Track) -> RacingParams:
@@ -223,194 +166,6 @@ def with_track(params: RacingParams, track: Track) -> RacingParams:
     if not isinstance(track, Track) or jnp.ndim(track.num_points) != 0:
         raise ValueError("with_track needs a single (un-batched) Track, e.g. from track_from_arrays")
     return with_bank(params, stack_tracks([track]))
-
-
-# --------------------------------------------------------------------------------------------
-# Geometry helpers (same arithmetic as envs.track, on the structure-of-arrays tables)
-# --------------------------------------------------------------------------------------------
-
-
-def _first_min_index(values):
-    """Index of the first minimum; cheaper than argmin on XLA CPU, identical result."""
-    smallest = jnp.min(values)
-    return jnp.min(jnp.where(values == smallest, jnp.arange(values.shape[0]), values.shape[0]))
-
-
-class TrackView(NamedTuple):
-    """The episode's track as seen by a step, without copying it out of the bank.
-
-    ``tables`` leaves are (M,) for a carried track (``row`` None) or (bank, M) for the whole bank,
-    read at ``[row, index]``: a step then touches only the table entries it needs (a bank track's
-    tables are ~40 KB, and gathering them all every step made the step memory bound).
-    """
-
-    tables: RingTables
-    row: jax.Array | None
-    length: jax.Array
-    num_points: jax.Array
-    cone_type: jax.Array
-
-    def take(self, leaf, index):
-        return leaf[index] if self.row is None else leaf[self.row, index]
-
-    @property
-    def size(self) -> int:
-        return self.tables.start_x.shape[-1]
-
-
-def _search(view: TrackView, leaf, values, right: bool):
-    """``jnp.searchsorted`` on a table row (bisection reading only ~10 entries per query)."""
-    size = view.size
-    lo = jnp.zeros(jnp.shape(values), jnp.int32)
-    hi = jnp.full(jnp.shape(values), size, jnp.int32)
-    for _ in range(int(np.ceil(np.log2(size + 1)))):
-        active = lo < hi
-        mid = (lo + hi) // 2
-        entry = view.take(leaf, jnp.minimum(mid, size - 1))
-        go_right = (entry <= values) if right else (entry < values)
-        lo = jnp.where(active & go_right, mid + 1, lo)
-        hi = jnp.where(active & ~go_right, mid, hi)
-    return lo
-
-
-def _segment_d2(view: TrackView, px, py, index):
-    """Squared distance and parameter of the nearest point on segments ``index`` (envs.track's formula)."""
-    tables = view.tables
-    sx, sy = view.take(tables.start_x, index), view.take(tables.start_y, index)
-    ex, ey = view.take(tables.edge_x, index), view.take(tables.edge_y, index)
-    len2 = view.take(tables.len2, index)
-    positive = len2 > 0
-    t = jnp.where(positive, ((px - sx) * ex + (py - sy) * ey) / jnp.where(positive, len2, 1), 0)
-    t = jnp.clip(t, 0, 1)
-    cx = (1 - t) * sx + t * view.take(tables.end_x, index)
-    cy = (1 - t) * sy + t * view.take(tables.end_y, index)
-    d2 = (px - cx) ** 2 + (py - cy) ** 2
-    return jnp.where(view.take(tables.valid, index), d2, jnp.inf), t
-
-
-def _finish_projection(view: TrackView, j, t_j, d2_j):
-    tables = view.tables
-    lo, hi = view.take(tables.s_start, j), view.take(tables.s_end, j)
-    s = jnp.clip((1 - t_j) * lo + t_j * hi, lo, hi)
-    s = jnp.where(s >= view.length, s - view.length, s)
-    lookup = jnp.minimum(_search(view, tables.s_end, s, right=False), view.size - 1)
-    tangent = jnp.stack([view.take(tables.tangent_x, lookup), view.take(tables.tangent_y, lookup)])
-    return s, jnp.sqrt(d2_j), tangent
-
-
-def project_point_global(view: TrackView, px, py):
-    """Global nearest point of the ring by brute force over all segments (reference for tests)."""
-    d2, t = _segment_d2(view, px, py, jnp.arange(view.size))
-    j = _first_min_index(d2)
-    return _finish_projection(view, j, t[j], d2[j])
-
-
-def project_point(view: TrackView, px, py):
-    """Global nearest point of the ring (§6.1): (s in [0, L), distance, travel tangent (2,)).
-
-    Same formula and tie-break as ``envs.track.project`` (the first of the nearest segments; a vertex
-    belongs to the segment ending there); the tangent is the progress lookup of §6.1.
-
-    Exact branch and bound instead of brute force: segments come in chunks of ``CHUNK`` with
-    bounding circles; ``|p - c| - r`` bounds every distance in a chunk from below, and chunks are
-    evaluated in order of that bound until no unvisited chunk could hold a segment as near as (or
-    nearer than) the best so far. Every segment that can win or tie is evaluated with the brute-force
-    formula, so the answer is the global one (tests compare with :func:`project_point_global`), but a
-    step reads ~3 chunks of 16 segments instead of all 800. Under ``vmap`` the loop runs as many
-    rounds as the slowest env of the batch needs.
-
-    The loop runs at most once per chunk, for every input. A position that is not finite, or so far
-    away that a squared distance overflows, is infinitely far from the ring: distance ``inf``, s = 0
-    and the tangent at s = 0 (the racing step then reports it as off the track).
-    """
-    tables = view.tables
-    chunks = jnp.arange(tables.chunk_x.shape[-1])
-    cx, cy, cr = (
-        view.take(tables.chunk_x, chunks),
-        view.take(tables.chunk_y, chunks),
-        view.take(tables.chunk_r, chunks),
-    )
-    bound = jnp.maximum(jnp.sqrt((px - cx) ** 2 + (py - cy) ** 2) - cr, 0)
-    bound2 = jnp.where(jnp.isfinite(cr), bound * bound, jnp.inf)
-    inf = jnp.asarray(jnp.inf, bound2.dtype)
-    offsets = jnp.arange(CHUNK, dtype=jnp.int32)
-
-    num_chunks = chunks.shape[0]
-
-    def pending(carry):
-        # Trip bound: a visit closes its chunk (bound -> inf), and once best_d2 is finite a closed chunk
-        # never qualifies again, so a finite position visits each chunk at most once and stops by
-        # itself within num_chunks rounds (its first visit, the lowest bound, is a chunk with a valid
-        # segment and makes best_d2 finite). A non-finite position (or an overflowing d2) never finds
-        # a finite best_d2, and without the counter it would revisit the closed chunks forever.
-        return jnp.any(carry[0] <= carry[1]) & (carry[4] < num_chunks)
-
-    def visit(carry):
-        open_bound2, best_d2, best_j, best_t, rounds = carry
-        chunk = _first_min_index(open_bound2).astype(jnp.int32)
-        index = chunk * CHUNK + offsets
-        d2, t = _segment_d2(view, px, py, index)
-        k = _first_min_index(d2).astype(jnp.int32)
-        better = (d2[k] < best_d2) | ((d2[k] == best_d2) & (index[k] < best_j))
-        return (
-            jnp.where(chunks == chunk, inf, open_bound2),
-            jnp.where(better, d2[k], best_d2),
-            jnp.where(better, index[k], best_j),
-            jnp.where(better, t[k], best_t),
-            rounds + 1,
-        )
-
-    start = (bound2, inf, jnp.asarray(view.size, jnp.int32), jnp.zeros_like(bound2[0]), jnp.int32(0))
-    _, best_d2, best_j, best_t, _ = jax.lax.while_loop(pending, visit, start)
-    # No finite distance (non-finite position): segment 0 at t = 0, distance sqrt(inf) = inf. (The
-    # tie-break may have recorded an inf-distance segment with a NaN t; that is discarded here.)
-    found = jnp.isfinite(best_d2)
-    best_j, best_t = jnp.where(found, best_j, 0), jnp.where(found, best_t, 0)
-    return _finish_projection(view, best_j, best_t, best_d2)
-
-
-def points_at_arclength(view: TrackView, arcs):
-    """Ring points at stored-order arc lengths ``arcs`` (mod L), as ``envs.track.point_at_arclength``."""
-    tables = view.tables
-    arcs = jnp.mod(arcs, view.length)
-    k = jnp.minimum(_search(view, tables.s_end, arcs, right=True), view.num_points - 1)
-    lo, hi = view.take(tables.s_start, k), view.take(tables.s_end, k)
-    span = hi - lo
-    t = jnp.clip(jnp.where(span > 0, (arcs - lo) / jnp.where(span > 0, span, 1), 0), 0, 1)
-    x = (1 - t) * view.take(tables.start_x, k) + t * view.take(tables.end_x, k)
-    y = (1 - t) * view.take(tables.start_y, k) + t * view.take(tables.end_y, k)
-    return x, y
-
-
-def _to_body(x_world, y_world, x, y, theta):
-    """World points into the body frame of pose (x, y, theta): B(theta)(P - p) (§0)."""
-    cos_t, sin_t = jnp.cos(theta), jnp.sin(theta)
-    dx, dy = x_world - x, y_world - y
-    return cos_t * dx + sin_t * dy, -sin_t * dx + cos_t * dy
-
-
-def cone_body_positions(view: TrackView, vehicle: VehicleState):
-    """All cone centres in the body frame of the car (§6.3, §7.2)."""
-    cones = jnp.arange(view.tables.cone_x.shape[-1])
-    x_world, y_world = view.take(view.tables.cone_x, cones), view.take(view.tables.cone_y, cones)
-    return _to_body(x_world, y_world, vehicle.x, vehicle.y, vehicle.theta)
-
-
-def _cone_hits(bx, by):
-    """Cone centres (body frame) inside the collision box dilated by the cone radius (§6.3)."""
-    a, b, r = _BOX_HALF_LENGTH, _BOX_HALF_WIDTH, _CONE_RADIUS
-    candidate = (bx > -a - r) & (bx < a + r) & (by > -b - r) & (by < b + r)
-    along = (bx > -a) & (bx < a) & (by > -b - r) & (by < b + r)
-    across = (bx > -a - r) & (bx < a + r) & (by > -b) & (by < b)
-    corner_dx = jnp.abs(bx) - a
-    corner_dy = jnp.abs(by) - b
-    corner = corner_dx * corner_dx + corner_dy * corner_dy < r * r
-    return candidate & (along | across | corner)
-
-
-# --------------------------------------------------------------------------------------------
-# The environment
-# --------------------------------------------------------------------------------------------
 
 
 class RacingEnv(Environment):
@@ -453,7 +208,11 @@ class RacingEnv(Environment):
 
     @property
     def default_params(self) -> RacingParams:
-        raise NotImplementedError("use envs.make(...) to get params with a track bank")
+        """The params ``envs.make`` gives this env without overrides: the default track bank
+        (generated once per process, see ``envs.registry.track_bank``), prepared for this env."""
+        from envs.registry import default_racing_params  # the registry builds on this module
+
+        return default_racing_params(self)
 
     def action_space(self, params: RacingParams | None = None):
         if self.discrete:
@@ -518,7 +277,7 @@ class RacingEnv(Environment):
     def prepare(self, params: RacingParams) -> RacingParams:
         """Precompute each bank track's reset observation and start arc length (makes reset a gather).
 
-        ``envs.make`` calls this; call it again after replacing ``params.tracks`` (``with_bank``).
+        ``envs.make`` calls this; the only constructor of the reset cache (see :class:`RacingParams`).
         Without it, reset computes them on the fly (correct, but slower under auto-reset + vmap).
         """
         if params.track_source != "bank" or params.tracks is None:
@@ -526,12 +285,12 @@ class RacingEnv(Environment):
         if params.tables is None:
             params = with_bank(params, params.tracks)
         obs, s = _start_bank(self, params)
-        return params.replace(start_s=s, reset_obs=obs)
+        return params.replace(start_s=s, reset_obs=obs, reset_cache_for=self._config())
 
     def reset_env(self, key: jax.Array, params: RacingParams):
         dtype = default_float()
         if params.track_source == "generate":
-            track = track_mod.generate_track(key)
+            track = generate_track(key)
             tables = ring_tables(track)
             index = jnp.zeros((), jnp.int32)
             carried = (track, tables)
@@ -542,7 +301,7 @@ class RacingEnv(Environment):
             index = jax.random.randint(key, (), 0, params.bank_size, dtype=jnp.int32)
             pick = lambda leaf: leaf[index]
             carried = (None, None)
-            cached = params.reset_obs is not None and self.sensor_key in params.reset_obs
+            cached = params.reset_obs is not None and params.reset_cache_for == self._config()
             if cached:
                 track = params.tracks.replace(
                     start_xy=pick(params.tracks.start_xy),
@@ -594,7 +353,7 @@ class RacingEnv(Environment):
         # 4: cone collisions against the new pose; hit cones are removed for good.
         if self.has_cones:
             bx, by = cone_body_positions(view, vehicle)
-            hit = state.cone_alive & _cone_hits(bx, by)
+            hit = state.cone_alive & cone_hits(bx, by)
             cone_alive = state.cone_alive & ~hit
             hits = jnp.sum(hit, dtype=jnp.int32)
         else:

@@ -36,8 +36,9 @@ import jax
 
 from envs.core import Environment, default_float
 from envs.country_road import CountryRoad
-from envs.racing import RacingParams, with_bank, with_track
-from envs.track import Track, make_track_bank
+from envs.racing import RESET_CACHE_FIELDS, RacingEnv, RacingParams, with_bank, with_track
+from envs.track import Track
+from envs.track_generator import make_track_bank
 from envs.tracking import Tracking
 from envs.vehicle import VehicleParams
 
@@ -56,7 +57,7 @@ ENV_NAMES = tuple(_SCENARIOS) + MULTI_AGENT_ENV_NAMES
 _PARAM_FIELDS = tuple(
     f.name
     for f in dataclasses.fields(RacingParams)
-    if f.name not in ("tracks", "tables", "start_s", "reset_obs")
+    if f.name not in ("tracks", "tables", *RESET_CACHE_FIELDS)
 )
 _BUILD_OPTIONS = ("track_bank_size", "track_seed", "track")
 _TRACKING_OPTIONS = ("lookahead_points",)
@@ -98,7 +99,23 @@ def make(name: str, **overrides) -> tuple[Environment, Any]:
 
     env_kwargs = {k: overrides.pop(k) for k in _TRACKING_OPTIONS if k in overrides}
     env = cls(discrete=discrete, **env_kwargs)
+    return env, racing_params(env, **overrides)
 
+
+def default_racing_params(env: RacingEnv) -> RacingParams:
+    """``env.default_params`` of the racing envs: ``racing_params(env)``, i.e. the default bank of
+    ``make`` (generated once per process), cached per (env configuration, dtype), so that
+    ``env.reset(key)`` works without params as in gymnax."""
+    return _cached_default_params(env, str(default_float()))
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_default_params(env: RacingEnv, dtype_name: str) -> RacingParams:
+    return racing_params(env)
+
+
+def racing_params(env: RacingEnv, **overrides) -> RacingParams:
+    """The params of a racing env from ``make``'s overrides (validated by ``make``), prepared for ``env``."""
     user_track = overrides.pop("track", None)
     bank_size = overrides.pop("track_bank_size", DEFAULT_BANK_SIZE)
     seed = overrides.pop("track_seed", 0)
@@ -119,7 +136,7 @@ def make(name: str, **overrides) -> tuple[Environment, Any]:
         params = with_bank(params, user_track) if batched else with_track(params, user_track)
     elif source == "bank":
         params = with_bank(params, track_bank(seed, bank_size))
-    return env, env.prepare(params)
+    return env.prepare(params)
 
 
 def _make_intersection(name: str, overrides: dict):

@@ -24,6 +24,9 @@ from matplotlib.collections import PatchCollection, PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Polygon, Rectangle
 
+from envs.track import CONE_RADIUS
+from envs.vehicle import VEHICLE_HALF_LENGTH, VEHICLE_HALF_WIDTH
+
 BACKGROUND = (0.8, 0.8, 0.8)
 ROAD_GREY = (0.6, 0.6, 0.6)
 CENTRE_LINE_GREY = (0.8, 0.8, 0.8)
@@ -35,8 +38,7 @@ WHEEL_GREY = (0.2, 0.2, 0.2)
 BUMPER_GREY = (0.45, 0.45, 0.45)
 
 ROAD_HALF_WIDTH = 4.3  # the drawn road: centre line buffered by 4.3 m (not the 4.0 m "on track" limit)
-CONE_RADIUS = 0.3
-CAR_LENGTH, CAR_WIDTH = 3.81, 1.48
+CAR_LENGTH, CAR_WIDTH = 2 * VEHICLE_HALF_LENGTH, 2 * VEHICLE_HALF_WIDTH
 AXLE_OFFSET = 1.2
 WHEEL_LENGTH, WHEEL_WIDTH = 0.5, 0.3
 METRES_VISIBLE_VERTICALLY = 57.5

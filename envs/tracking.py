@@ -12,8 +12,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from envs.core import Box, default_float
-from envs.racing import RacingEnv, RacingParams, TrackView, _to_body, points_at_arclength
-from envs.vehicle import VehicleState
+from envs.racing import RacingEnv, RacingParams
+from envs.ring_geometry import TrackView, points_at_arclength
+from envs.vehicle import VehicleState, world_to_body
 
 LOOKAHEAD_POINTS = 25  # paper's override of CarEnv's 50 (spacing 2 m instead of 1 m: params)
 
@@ -45,7 +46,7 @@ class Tracking(RacingEnv):
         k = jnp.arange(n, dtype=dtype)
         # The travel direction is opposite to the stored order: k*spacing ahead = s - k*spacing stored.
         px, py = points_at_arclength(view, s - k * params.lookahead_spacing)
-        bx, by = _to_body(px, py, vehicle.x, vehicle.y, vehicle.theta)
+        bx, by = world_to_body(px, py, vehicle.x, vehicle.y, vehicle.theta)
         scale = jnp.sqrt(jnp.asarray(2.0, dtype)) * params.lookahead_spacing * n
         return jnp.stack(
             [

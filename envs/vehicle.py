@@ -49,6 +49,11 @@ _YAW_RATE_NORMALISER = 6.28
 _WHEEL_SPEED_HEADROOM = 1.1
 
 
+# The car body as a box around the CoG (§1.1): collisions with cones and between cars, and drawing.
+VEHICLE_HALF_LENGTH = 1.905
+VEHICLE_HALF_WIDTH = 0.74
+
+
 @struct.dataclass
 class VehicleParams:
     """Constants of the racing car (§2.2 / §2.3), all SI. Leaves may be traced (vmapped sweeps)."""
@@ -166,6 +171,13 @@ class VehicleDiagnostics(NamedTuple):
     force_rear_body: jax.Array  # (..., 2): rear tyre force (body frame = rear wheel frame)
     slipping: jax.Array  # (..., 2) bool: lambda <= 0.3, front / rear
     braking: jax.Array  # bool: b > 0.05 (brake lights only)
+
+
+def world_to_body(x_world, y_world, x, y, theta):
+    """World points into the body frame of pose (x, y, theta): B(theta)(P - p) (§0)."""
+    cos_t, sin_t = jnp.cos(theta), jnp.sin(theta)
+    dx, dy = x_world - x, y_world - y
+    return cos_t * dx + sin_t * dy, -sin_t * dx + cos_t * dy
 
 
 def body_velocity(state: VehicleState):

@@ -10,8 +10,11 @@ import numpy as np
 import pytest
 
 import envs
+from envs import actions as actions_mod
 from envs import intersection as ix
 from envs import intersection_geometry as geo
+from envs import intersection_rules as rules
+from envs import intersection_traffic as traffic
 from envs.core import VmapWrapper
 
 PARAMS8 = ix.IntersectionParams(max_vehicles=8)
@@ -199,7 +202,7 @@ def test_stale_spawn_timers_flag():
             assert not np.any(fresh[~spawned_now])
         # Behaviour: with room for 2 more, only spawners without a timer may spawn at t = 0.1.
         roomy = state.replace(max_vehicles=jnp.int32(4))
-        _, new = ix.spawn_vehicles(jax.random.PRNGKey(7), params, roomy, roomy.alive, 0.1)
+        _, new = traffic.spawn_vehicles(jax.random.PRNGKey(7), params, roomy, roomy.alive, 0.1)
         results[stale] = int(np.sum(new))
     assert results == {True: 0, False: 2}
 
@@ -214,7 +217,9 @@ def test_tracking_reward_reference_examples():
     for lateral, expected in ((0.0, 0.035), (0.5, 0.02975)):
         prev = jnp.array([-1.5 + lateral, -20.0])
         prev_s = -20.0 + 51.5
-        reward, _, moved, goal = ix.route_tracker(PARAMS8, route, prev, prev_s, prev + jnp.array([0.0, 0.7]))
+        reward, _, moved, goal = rules.route_tracker(
+            PARAMS8, route, prev, prev_s, prev + jnp.array([0.0, 0.7])
+        )
         np.testing.assert_allclose(float(reward), expected, atol=2e-6)
         np.testing.assert_allclose(float(moved), 0.7, atol=1e-6)
         assert not bool(goal)
@@ -222,7 +227,9 @@ def test_tracking_reward_reference_examples():
     for kind, threshold in (("straight", 98.0), ("right", 93.05376199450839), ("left", 99.05376199450839)):
         r = geo.route_index("S", kind)
         tail = geo.ROUTE_XY[r][-1]
-        _, _, _, goal = ix.route_tracker(PARAMS8, jnp.asarray(r), jnp.asarray(tail), 0.0, jnp.asarray(tail))
+        _, _, _, goal = rules.route_tracker(
+            PARAMS8, jnp.asarray(r), jnp.asarray(tail), 0.0, jnp.asarray(tail)
+        )
         assert bool(goal)
         np.testing.assert_allclose(float(geo.ROUTE_LENGTH[r]) - 5.0, threshold, atol=1e-9)
 
@@ -231,8 +238,8 @@ def test_step_reward_is_tracker_minus_slip(step):
     state = place([(-1.5, -20.0, UP)], speeds=7.0)
     _, new, reward, terminated, truncated, info = step(jax.random.PRNGKey(8), state, COAST, PARAMS8)
     xy = jnp.stack([new.vehicle.x, new.vehicle.y], -1)
-    track, *_ = ix.route_tracker(PARAMS8, state.route, state.prev_xy, state.prev_s, xy)
-    slip = ix.slip_penalty(PARAMS8, new.vehicle)
+    track, *_ = rules.route_tracker(PARAMS8, state.route, state.prev_xy, state.prev_s, xy)
+    slip = rules.slip_penalty(PARAMS8, new.vehicle)
     np.testing.assert_allclose(float(reward[0]), float(track[0] - 0.1 * slip[0]), atol=1e-6)
     assert 0.03 < float(reward[0]) < 0.036 and not bool(terminated[0]) and not bool(truncated[0])
     moved = float(jnp.hypot(new.vehicle.x[0] + 1.5, new.vehicle.y[0] + 20.0))
@@ -245,7 +252,7 @@ def test_slip_penalty_closed_form():
     # Body velocities: forward only; sideways slip of 14 deg at the rear axle; reversing.
     vx = jnp.array([5.0, 5.0, -5.0] + [0.0] * 5)
     vy = jnp.array([0.0, 5.0 * math.tan(math.radians(14.0)), 0.0] + [0.0] * 5)
-    penalty = ix.slip_penalty(PARAMS8, vehicle.replace(vx=vx, vy=vy))
+    penalty = rules.slip_penalty(PARAMS8, vehicle.replace(vx=vx, vy=vy))
     np.testing.assert_allclose(np.asarray(penalty)[:3], [0.0, 0.5, 1.0], atol=1e-5)
 
 
@@ -292,15 +299,17 @@ def test_soft_collision_penalty(step):
     _, new, reward, terminated, *_ = step(jax.random.PRNGKey(13), state, COAST, PARAMS8)
     assert not np.any(np.asarray(terminated))
     xy = jnp.stack([new.vehicle.x, new.vehicle.y], -1)
-    track, *_ = ix.route_tracker(PARAMS8, state.route, state.prev_xy, state.prev_s, xy)
-    plain = track - 0.1 * ix.slip_penalty(PARAMS8, new.vehicle)
+    track, *_ = rules.route_tracker(PARAMS8, state.route, state.prev_xy, state.prev_s, xy)
+    plain = track - 0.1 * rules.slip_penalty(PARAMS8, new.vehicle)
     np.testing.assert_allclose(np.asarray(reward)[:2], np.asarray(plain)[:2] - 0.05, atol=1e-6)
     # Without soft collisions the pair costs nothing; the hard test alone decides.
-    poses = ix._poses(new.vehicle)
+    poses = rules.vehicle_poses(new.vehicle)
     speed = jnp.full(8, 7.0)
     for soft, expected in ((True, -0.05), (False, 0.0)):
         params = ix.IntersectionParams(soft_collisions=soft)
-        out, hit, pairs = ix.collision_rewards(params, poses, speed, new.alive, new.spawn_seq, jnp.zeros(8))
+        out, hit, pairs = rules.collision_rewards(
+            params, poses, speed, new.alive, new.spawn_seq, jnp.zeros(8)
+        )
         np.testing.assert_allclose(np.asarray(out)[:2], expected, atol=1e-7)
         assert not np.any(np.asarray(hit)) and int(pairs) == 0
 
@@ -457,7 +466,7 @@ def test_discrete_variant_registry_and_input_checks():
     index = jnp.arange(8, dtype=jnp.int32) + 4
     alive = jnp.arange(8) < 6
     control = np.asarray(env._control(index, alive))
-    table = np.asarray(ix.actions_mod.continuous_to_control(ix.actions_mod.DISCRETE_ACTIONS))
+    table = np.asarray(actions_mod.continuous_to_control(actions_mod.DISCRETE_ACTIONS))
     np.testing.assert_array_equal(control[:6], table[4:10])
     state = place([(-1.5, -20.0, UP)])
     with pytest.raises(ValueError, match="shape"):
@@ -477,7 +486,7 @@ def test_discrete_step_matches_continuous_table():
     state = place([(-1.5, -20.0, UP), (-20.0, -1.5, math.pi)], speeds=7.0)
     index = jnp.array([11, 6, 0, 0, 0, 0, 0, 0], jnp.int32)
     out_d = jax.jit(env.step)(jax.random.PRNGKey(1), state, index, params)
-    action = jnp.asarray(ix.actions_mod.DISCRETE_ACTIONS)[index]
+    action = jnp.asarray(actions_mod.DISCRETE_ACTIONS)[index]
     out_c = jax.jit(ENV.step)(jax.random.PRNGKey(1), state, action, params)
     for x, y in zip(jax.tree.leaves(out_d), jax.tree.leaves(out_c), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
@@ -486,7 +495,7 @@ def test_discrete_step_matches_continuous_table():
 def test_route_points_match_geometry():
     route = jnp.arange(12, dtype=jnp.int32)
     s = jnp.linspace(-3.0, 110.0, 57)[None, :] + jnp.zeros((12, 1))
-    ours = np.asarray(ix.route_points(route, s))
+    ours = np.asarray(rules.route_points(route, s))
     for r in range(12):
         ref = np.asarray(
             geo.route_point_at(

@@ -109,22 +109,23 @@ def _worker_project(out):
     """``project_point`` at non-finite, huge and ordinary positions of the test track."""
     import jax
     import jax.numpy as jnp
+    import track_reference  # tests/ is on the path: this file runs as a script
 
-    from envs import racing
+    from envs import ring_geometry
 
     with np.load(DATA) as data:
         pose = data["start_pose"]
         track = envs.track_from_arrays(data["track_centerline"], pose[:2], pose[2])
     _, params = envs.make("tracking", track=track)
     tracks = params.tracks
-    view = racing.TrackView(
+    view = ring_geometry.TrackView(
         params.tables, jnp.int32(0), tracks.length[0], tracks.num_points[0], tracks.cone_type[0]
     )
     x0, y0 = (float(v) for v in pose[:2])
     px = jnp.asarray([NAN, 0.0, INF, -INF, INF, 1e30, -1e30, x0, x0 + 3.0], jnp.float32)
     py = jnp.asarray([0.0, NAN, 0.0, 5.0, -INF, 1e30, 0.0, y0, y0 - 2.0], jnp.float32)
-    project = jax.jit(jax.vmap(lambda x, y: racing.project_point(view, x, y)))
-    brute = jax.jit(jax.vmap(lambda x, y: racing.project_point_global(view, x, y)))
+    project = jax.jit(jax.vmap(lambda x, y: ring_geometry.project_point(view, x, y)))
+    brute = jax.jit(jax.vmap(lambda x, y: track_reference.project_point_global(view, x, y)))
     s, distance, tangent = project(px, py)
     s_ref, distance_ref, _ = brute(px[-2:], py[-2:])
     np.savez(out, s=s, distance=distance, tangent=tangent, s_ref=s_ref, distance_ref=distance_ref)

@@ -2,13 +2,15 @@
 
 from pathlib import Path
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import track_reference
 
 import envs
-from envs import racing
+from envs import racing, ring_geometry
 from envs.racing import IDLING, LEFT_TRACK, MAX_TIME, stack_tracks
 from envs.vehicle import body_velocity
 
@@ -227,7 +229,7 @@ def test_cone_collision_shape_is_strict_rounded_rectangle():
     x = jnp.array([a + r - 1e-6, a + r, 0.0, 0.0, a + 0.2, a + 0.22, a + 0.29, 0.0, -a - r + 1e-3])
     y = jnp.array([0.0, 0.0, b + r - 1e-6, b + r, b + 0.2, b + 0.22, 0.0, 0.0, 0.1])
     expected = [True, False, True, False, True, False, True, True, True]
-    np.testing.assert_array_equal(np.asarray(racing._cone_hits(x, y)), expected)
+    np.testing.assert_array_equal(np.asarray(ring_geometry.cone_hits(x, y)), expected)
 
 
 def test_discrete_table_maps_through_the_shared_control_path():
@@ -375,13 +377,13 @@ def test_make_rejects_unknown_names_and_overrides(track32):
     assert params.k_forwards == 0.5 and env.discrete
 
 
-def test_projection_is_global_and_agrees_with_track_module():
-    """Branch-and-bound projection == brute force over all segments == envs.track.project (float64),
+def test_projection_is_global_and_agrees_with_the_reference():
+    """Branch-and-bound projection == brute force over all segments == track_reference.project (float64),
     for points near the track (incl. off-track ones) and far away (where many chunks tie closely)."""
     with jax.enable_x64(True):
         track = golden_track(load("tracking"))
-        view = racing.TrackView(
-            racing.ring_tables(track), None, track.length, track.num_points, track.cone_type
+        view = ring_geometry.TrackView(
+            ring_geometry.ring_tables(track), None, track.length, track.num_points, track.cone_type
         )
         rng = np.random.default_rng(0)
         anchors = np.asarray(track.centerline)[rng.integers(0, 320, 400)]
@@ -393,12 +395,13 @@ def test_projection_is_global_and_agrees_with_track_module():
 
         @jax.jit
         def compute(view, track, points, arcs):
-            fast = jax.vmap(lambda p: racing.project_point(view, p[0], p[1]))(points)
-            brute = jax.vmap(lambda p: racing.project_point_global(view, p[0], p[1]))(points)
-            s_ref, d_ref = jax.vmap(lambda p: envs.track.project(track, p))(points)
-            tangent_ref = jax.vmap(lambda s: envs.track.travel_tangent(track, s))(s_ref)
-            ours = jnp.stack(racing.points_at_arclength(view, arcs), -1)
-            return fast, brute, (s_ref, d_ref, tangent_ref), ours, envs.track.point_at_arclength(track, arcs)
+            fast = jax.vmap(lambda p: ring_geometry.project_point(view, p[0], p[1]))(points)
+            brute = jax.vmap(lambda p: track_reference.project_point_global(view, p[0], p[1]))(points)
+            s_ref, d_ref = jax.vmap(lambda p: track_reference.project(track, p))(points)
+            tangent_ref = jax.vmap(lambda s: track_reference.travel_tangent(track, s))(s_ref)
+            ours = jnp.stack(ring_geometry.points_at_arclength(view, arcs), -1)
+            theirs = track_reference.point_at_arclength(track, arcs)
+            return fast, brute, (s_ref, d_ref, tangent_ref), ours, theirs
 
         fast, brute, reference, ours, theirs = jax.tree.map(np.asarray, compute(view, track, points, arcs))
     for a, b in zip(fast, brute, strict=True):
@@ -483,3 +486,53 @@ def test_generate_mode_builds_a_fresh_track_per_reset():
     )
     assert int(state.step_count) == 1 and not bool(terminated | truncated)
     assert float(info["dist_center"]) < 0.5 and float(reward) >= 0.0
+
+
+# ----------------------------------------------------------------------------------------------
+# Conventions: default params, the reset cache, jit and eager agree
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", envs.ENV_NAMES)
+def test_default_params_work_for_every_env(name):
+    """gymnax's convention: ``env.reset(key)`` without params uses ``env.default_params``, which
+    for the racing envs is ``envs.make``'s default (the cached default bank)."""
+    env, params = envs.make(name)
+    key = jax.random.PRNGKey(5)
+    chex.assert_trees_all_equal(env.reset(key)[0], env.reset(key, params)[0])
+
+
+def test_reset_cache_cannot_go_stale(tracking, track32):
+    env, params = tracking
+    assert params.reset_cache_for == env._config()
+    assert params.replace(max_steps=5).reset_obs is not None  # rewards and endings: cache kept
+    spaced = params.replace(lookahead_spacing=3.0)
+    assert spaced.reset_obs is None and spaced.start_s is None
+    fresh = env.prepare(spaced)
+    first = jax.tree.map(lambda leaf: leaf[0], fresh.reset_obs)  # a one-track bank
+    chex.assert_trees_all_close(env.reset(jax.random.PRNGKey(0), spaced)[0], first, atol=1e-6)
+    # A cache built for another configuration of the same sensor is not used.
+    short, _ = envs.make("tracking", track=track32, lookahead_points=10)
+    obs, _ = short.reset(jax.random.PRNGKey(0), params)
+    chex.assert_shape(obs["trajectory_set"], (10, 4))
+
+
+class EagerAndJitAgree(chex.TestCase):
+    """A reset and a few steps of Tracking on the golden track, jitted and not (chex variants)."""
+
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_reset_and_step(self):
+        env, params = envs.make("tracking", track=golden_track(load("country_road")))
+
+        @self.variant
+        def reset_and_step(key, action):
+            obs, state = env.reset(key, params)
+            return obs, env.step(key, state, action, params)
+
+        obs, (obs1, _, reward, terminated, truncated, info) = reset_and_step(
+            jax.random.PRNGKey(0), jnp.asarray([0.1, 0.5, -1.0])
+        )
+        chex.assert_trees_all_close(obs, jax.tree.map(lambda leaf: leaf[0], params.reset_obs))
+        chex.assert_shape([obs1["state"], obs1["trajectory_set"]], [(6,), (25, 4)])
+        chex.assert_rank([reward, terminated, truncated, info["done_reason"]], 0)
+        assert not bool(terminated | truncated)
