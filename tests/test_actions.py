@@ -3,6 +3,7 @@ reduced 2-D action."""
 
 from pathlib import Path
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -124,3 +125,16 @@ def test_reduced_action():
     np.testing.assert_allclose(reduced_to_control(action), expected_control, atol=1e-7)
     with pytest.raises(ValueError, match=r"\(\.\.\., 2\)"):
         reduced_to_action(jnp.zeros(3))
+
+
+class MappingsJitAndEager(chex.TestCase):
+    """The action mappings give the same controls jitted and not (chex variants)."""
+
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_continuous_and_discrete(self):
+        continuous = self.variant(continuous_to_control)
+        discrete = self.variant(discrete_to_control)
+        table = jnp.asarray(SPEC_TABLE, jnp.float32)
+        chex.assert_trees_all_close(continuous(DISCRETE_ACTIONS), table, atol=1e-7)
+        chex.assert_trees_all_equal(discrete(jnp.arange(12)), table)
+        chex.assert_shape(continuous(jnp.zeros((4, 2, 3))), (4, 2, 3))

@@ -23,6 +23,18 @@ def test_envs_does_not_depend_on_xrl_jax():
         assert "import xrl_jax" not in text and "from xrl_jax" not in text, path
 
 
+def test_envs_modules_are_small_and_import_no_private_names():
+    """One home per fact: no module of envs/ over 600 lines, none importing another's private names."""
+    private_import = re.compile(r"^\s*from envs[.\w]* import (?:\(([^)]*)\)|([^\n]*))", re.M)
+    for path in sorted((ROOT / "envs").glob("*.py")):
+        text = path.read_text()
+        assert text.count("\n") <= 600, f"{path.name}: {text.count(chr(10))} lines"
+        for match in private_import.finditer(text):
+            imported = match.group(1) or match.group(2)
+            names = [n.strip().split(" as ")[0] for n in re.sub(r"#[^\n]*", "", imported).split(",")]
+            assert not [n for n in names if n.startswith("_") and n != "__future__"], (path.name, names)
+
+
 def run_cli(*args):
     return subprocess.run(
         [sys.executable, str(ROOT / "experiments" / "run.py"), *args],
