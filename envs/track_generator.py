@@ -4,28 +4,25 @@ Generator in fixed shapes: up to 20 raw points, a gift-wrapping convex hull (clo
 the original's geometry library returns it), the non-convex perturbation, Gauss-Seidel push-apart
 as `lax` loops, a closed centripetal Catmull-Rom spline (20 samples per segment, junctions repeated
 exactly), and a bounded rejection loop (at most `MAX_ATTEMPTS` draws; the last draw is kept if none
-is valid, which happens with probability ~0.12**16). Approximations, all documented as acceptable in
+is valid, which is vanishingly rare). Approximations, all documented as acceptable in
 docs/carenv-single-agent.md:
 
 * Validity: only the simplicity check (§5.6 check 1, exact, over all pairs of non-adjacent
-  segments) plus a length bound that guarantees the cones fit (`MAX_TRACK_LENGTH`, never reached:
-  measured maximum 636 m). The buffer checks 2-3 ("one hole", "single polygon"), which practically
-  never fire in the original, are dropped (a Shapely cross-check of 400 draws found no simple
-  centre line whose 4 m buffer fails the one-hole test).
-* Rejection rate: this port rejects ~1-3 % of draws, the original ~12 %. A Shapely cross-check
-  explains the gap: `is_simple` on the float64 spline with junction repeats equal only up to
-  rounding (as the original samples them, §5.5 correction) rejects ~25 % of the same draws,
-  with exact repeats ~1 %. The original's extra rejections are rounding artefacts at the junctions,
-  not real self-intersections; they are not reproduced (the accepted tracks' control-point,
-  sample, length and cone statistics match the measured medians of §5.5 and §5.7 anyway).
+  segments) plus a length bound that guarantees the cones fit (`MAX_TRACK_LENGTH`, above the
+  longest tracks of §5.7). The buffer checks 2-3 ("one hole", "single polygon"), which practically
+  never fire in the original, are dropped.
+* Rejection rate: lower than the original's. `is_simple` on a spline whose junction repeats are
+  equal only up to rounding (as the original samples them, §5.5 correction) rejects many draws that
+  the same spline with exact repeats accepts: the original's extra rejections are rounding artefacts
+  at the junctions, not real self-intersections, and are not reproduced (the accepted tracks'
+  control-point, sample, length and cone statistics match §5.5 and §5.7).
 * Cones (§5.7): instead of a polygon buffer, the 3.5 m offset curves are built from candidate
   points (offset segment midpoints, round-join arcs on the convex side of every vertex, the miter
   corner on the concave side); candidates closer than 3.5 m - `CONE_TRIM_TOL` to the centre line
   are trimmed (they lie in the overlapping loops of tight corners or pinch points), the rest is
   resampled every 5 m by arc length and each cone is finally moved radially onto the 3.5 m offset.
-  Against Shapely's buffer rings (200 tracks): same cone count to within 1 per track, cones within
-  5 mm of the buffer boundary in 99 % of cases (max 5 cm). The exterior ring is stored first, as in
-  the original; the ring start points are arbitrary (as in the original).
+  The exterior ring is stored first, as in the original; the ring start points are arbitrary (as in
+  the original).
 * Travel direction: a fair coin reverses the stored order; cones are coloured by side (type 1 =
   blue = driver's right, type 2 = yellow = left), the net rule of §5.8.
 """
