@@ -70,10 +70,10 @@ def test_discrete_target_min_per_action_before_expectation():
     np.testing.assert_allclose(y_done, [3.0])
 
 
-def test_categorical_entropy_clip_keeps_zero_probabilities_finite():
+def test_clipped_entropy_clip_keeps_zero_probabilities_finite():
     probs = jnp.array([[1.0, 0.0, 0.0], [0.25, 0.25, 0.5]])
-    np.testing.assert_allclose(losses.categorical_entropy(probs), [0.0, 1.5 * np.log(2.0)], atol=1e-6)
-    grad = jax.grad(lambda p: losses.categorical_entropy(p).sum())(probs)
+    np.testing.assert_allclose(losses.clipped_entropy(probs), [0.0, 1.5 * np.log(2.0)], atol=1e-6)
+    grad = jax.grad(lambda p: losses.clipped_entropy(p).sum())(probs)
     assert np.all(np.isfinite(grad))
 
 
@@ -160,8 +160,8 @@ def test_kappa_term_pushes_weights_towards_uniform(loss_of_logits):
     logits = jnp.array([[2.0, 0.0, -1.0]])
     grad = jax.grad(loss_of_logits)(logits, 0.01)
     step = logits - grad  # one gradient-descent step
-    h_before = losses.categorical_entropy(jax.nn.softmax(logits))
-    h_after = losses.categorical_entropy(jax.nn.softmax(step))
+    h_before = losses.clipped_entropy(jax.nn.softmax(logits))
+    h_after = losses.clipped_entropy(jax.nn.softmax(step))
     assert float(h_after[0]) > float(h_before[0])
     assert float(grad[0, 0]) > 0 > float(grad[0, 2])  # the dominant logit is pushed down
     # κ < 0 (Fig. 8) does the opposite; κ = 0 leaves the weights alone

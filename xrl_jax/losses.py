@@ -44,10 +44,6 @@ def squared(error: jax.Array) -> jax.Array:
 REGRESSION_LOSSES = {"huber": huber, "l2": squared}
 
 
-# H(p) = −Σ p·log(clip(p, 1e-10, 1)): zero-probability entries contribute exactly 0 (§7.3).
-categorical_entropy = clipped_entropy
-
-
 def weighted_mean(values: jax.Array, weight: jax.Array | None) -> jax.Array:
     """Mean over the last axis, optionally weighted; an all-zero weight gives 0 (not NaN)."""
     if weight is None:
@@ -89,7 +85,7 @@ def discrete_td_target(
     `next_q` (n_critics, B, N), `next_probs` (B, N).
     """
     min_q = jnp.min(next_q, axis=0)
-    soft_value = jnp.sum(next_probs * min_q, axis=-1) + alpha * categorical_entropy(next_probs)
+    soft_value = jnp.sum(next_probs * min_q, axis=-1) + alpha * clipped_entropy(next_probs)
     return jax.lax.stop_gradient(reward + discount * soft_value)
 
 
@@ -150,7 +146,7 @@ def dsac_actor_loss(
     """
     alpha = jax.lax.stop_gradient(alpha)
     mean_q = jnp.mean(q, axis=0)
-    entropy = categorical_entropy(probs)
+    entropy = clipped_entropy(probs)
     loss = -jnp.mean(jnp.sum(probs * mean_q, axis=-1) + alpha * entropy)
     entropy = jax.lax.stop_gradient(entropy)
     return loss, {
@@ -183,7 +179,7 @@ def xsac_actor_loss(
     alpha = jax.lax.stop_gradient(alpha)
     kappa = jax.lax.stop_gradient(kappa)
     per_component = alpha * log_prob - jnp.min(q, axis=0)
-    mixture_entropy = categorical_entropy(weights)
+    mixture_entropy = clipped_entropy(weights)
     loss = jnp.mean(jnp.sum(weights * per_component, axis=-1) - kappa * mixture_entropy)
     # For the α loss and the logs: the weight-averaged component log-prob Σ_k w_k log π(a_k|s).
     mean_log_prob = jax.lax.stop_gradient(jnp.sum(weights * log_prob, axis=-1))
@@ -211,7 +207,7 @@ def xdsac_actor_loss(
     """
     kappa = jax.lax.stop_gradient(kappa)
     dsac_loss, aux = dsac_actor_loss(probs, q, alpha)
-    mixture_entropy = categorical_entropy(weights)
+    mixture_entropy = clipped_entropy(weights)
     loss = dsac_loss - kappa * jnp.mean(mixture_entropy)
     return loss, {
         **aux,
