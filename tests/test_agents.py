@@ -382,7 +382,10 @@ def test_kappa_term_is_minus_kappa_times_weight_entropy(algo):
 
 def test_xdsac_actor_loss_equals_explicit_sum_over_actions():
     out = loss_checks("xdsac")
-    w = np.asarray(out["actor_output"].weights, np.float64)
+    present = np.asarray(out["actor_output"].present)  # weights from the raw outputs, in float64
+    logits = np.where(present, np.asarray(out["actor_output"].mixture_logits, np.float64), -np.inf)
+    w = np.exp(logits - logits.max(-1, keepdims=True))
+    w /= w.sum(-1, keepdims=True)
     q_obj = np.asarray(jax.nn.softmax(out["actor_output"].logits, axis=-1), np.float64)
     q = np.asarray(out["q"], np.float64).mean(0)
     total = 0.0

@@ -16,11 +16,15 @@ from scipy.special import ndtr
 
 from xrl_jax.distributions import (
     ABSENT_LOG_WEIGHT,
-    LOG_STD_BOUNDS,
+    LOG_STD_MAX,
+    MIXTURE_LOG_STD_MIN,
     CategoricalMixture,
     SquashedGaussianMixture,
+    clip_log_std,
     clipped_entropy,
+    masked_logits,
     masked_softmax,
+    sample_slot,
     squashed_gaussian,
 )
 
@@ -143,7 +147,7 @@ def reference_log_prob(action, loc, log_scale, weights, floor=False):
     """The reference's probability-space formula (§3.2), in numpy in the inputs' dtype:
     products of univariate pdfs, weighted sum, then the log."""
     u = np.arctanh(action)[..., None, :]
-    sigma = np.exp(np.clip(log_scale, *LOG_STD_BOUNDS))
+    sigma = np.exp(np.clip(log_scale, MIXTURE_LOG_STD_MIN, LOG_STD_MAX))
     pdf = np.exp(-0.5 * ((u - loc) / sigma) ** 2) / (sigma * np.sqrt(2 * np.pi).astype(sigma.dtype))
     p_u = np.sum(weights * np.prod(pdf, axis=-1), axis=-1)
     correction = np.prod(1 - action**2 + 1e-6, axis=-1)
@@ -517,7 +521,7 @@ def test_permuting_and_padding_slots_leaves_the_distribution_unchanged():
     np.testing.assert_allclose(padded, base, rtol=1e-6, atol=1e-6)
 
 
-@pytest.mark.parametrize("log_std", [LOG_STD_BOUNDS[0], LOG_STD_BOUNDS[1], -100.0, 100.0])
+@pytest.mark.parametrize("log_std", [MIXTURE_LOG_STD_MIN, LOG_STD_MAX, -100.0, 100.0])
 def test_everything_finite_at_extreme_logits_clip_bounds_and_saturated_actions(log_std):
     loc = np.array([[0.0, 3.0, -3.0], [12.0, -12.0, 0.5], [1.0, 1.0, 1.0], [-9.0, 0.0, 9.0], [0.2, 0.0, 0.0]])
     loc = np.repeat(loc[None], 3, 0).astype(np.float32)
@@ -535,7 +539,7 @@ def test_everything_finite_at_extreme_logits_clip_bounds_and_saturated_actions(l
     assert all(np.all(np.isfinite(g)) for g in grads)
     np.testing.assert_allclose(np.asarray(out["weights"])[2], 1 / 5, rtol=1e-6)  # all absent: uniform
     stored = np.asarray(out["log_scale"])
-    assert stored.min() >= LOG_STD_BOUNDS[0] and stored.max() <= LOG_STD_BOUNDS[1]
+    assert stored.min() >= MIXTURE_LOG_STD_MIN and stored.max() <= LOG_STD_MAX
 
 
 @jax.jit
@@ -693,3 +697,22 @@ def test_absent_log_weight_is_finite_and_harmless():
     )
     np.testing.assert_array_equal(weights, np.eye(4, 6))
     assert np.all(np.asarray(clipped_entropy(weights)) == 0.0)
+
+
+def test_log_std_clip_bounds_are_checked_and_honoured():
+    np.testing.assert_array_equal(clip_log_std(np.array([-30.0, 0.0, 5.0]), -20.0, 2.0), [-20.0, 0.0, 2.0])
+    with pytest.raises(ValueError, match="must not exceed"):
+        clip_log_std(np.zeros(2), 3.0, 2.0)
+    sac = squashed_gaussian(np.zeros(2), np.array([-30.0, 5.0]))  # SB3 bounds by default
+    np.testing.assert_array_equal(sac.log_scale[0], [-20.0, 2.0])
+
+
+def test_sample_slot_never_draws_absent_slots_and_falls_back_to_uniform():
+    logits = np.array([[0.0, 50.0, 0.0, 0.0], [1.0, 2.0, 3.0, 4.0]], np.float32)
+    present = np.array([[True, False, True, True], [False] * 4])
+    masked = masked_logits(logits, present)
+    np.testing.assert_array_equal(masked[0, 1], np.float32(ABSENT_LOG_WEIGHT))
+    draws = jax.vmap(lambda k: sample_slot(k, masked, present))(jax.random.split(jax.random.key(0), 2000))
+    assert not np.any(np.asarray(draws[:, 0]) == 1)
+    counts = np.bincount(np.asarray(draws[:, 1]), minlength=4) / 2000  # no slot present: uniform
+    np.testing.assert_allclose(counts, 0.25, atol=0.05)

@@ -5,8 +5,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from network_support import (
+    component_weights,
+    costs,
+    count_params,
+    make_test_networks,
+    mixture_policy,
+    object_weights,
+)
 
 from xrl_jax import networks as N
+from xrl_jax.config import ALGOS
+from xrl_jax.distributions import LOG_STD_MAX, MIXTURE_LOG_STD_MIN, SAC_LOG_STD_MIN
 
 # Threefry kernels are slow to compile on CPU; the RBG generator keeps these tests fast.
 KEY = jax.random.key(0, impl="unsafe_rbg")
@@ -53,15 +63,13 @@ def small_obs():
 
 
 @pytest.mark.parametrize("env", ["country_road", "tracking", "intersection"])
-@pytest.mark.parametrize("algo", N.ALGORITHMS)
+@pytest.mark.parametrize("algo", ALGOS)
 def test_output_shapes_with_leading_batch_axes(env, algo):
-    nets = N.make_networks(N.make_network_config(env, algo, **TINY))
+    nets = make_test_networks(env, algo, **TINY)
     obs = nets.dummy_observation(BATCH)
     # the intersection X actors carry the neutral object in front of the 8 vehicle slots
-    o, a_dim, n = nets.config.obs_shape.num_objects + int(nets.config.neutral_object), 3, 12
-    assert o == (
-        9 if (env, nets.config.explainable) == ("intersection", True) else nets.config.obs_shape.num_objects
-    )
+    o, a_dim, n = nets.obs_shape.num_objects + int(nets.config.neutral_object), 3, 12
+    assert o == (9 if (env, nets.config.is_mixture) == ("intersection", True) else nets.obs_shape.num_objects)
     actor_params = jax.eval_shape(nets.init_actor, KEY)
     critic_params = jax.eval_shape(nets.init_critic, KEY)
     out = jax.eval_shape(nets.actor.apply, actor_params, obs)
@@ -71,13 +79,13 @@ def test_output_shapes_with_leading_batch_axes(env, algo):
         assert out.shape == (*BATCH, n)
     elif algo == "xsac":
         assert out.means.shape == out.log_stds.shape == (*BATCH, o, 1, a_dim)
-        assert out.mixture_logits.shape == out.weights.shape == out.present.shape == (*BATCH, o)
+        assert out.mixture_logits.shape == out.present.shape == (*BATCH, o)
     else:
         assert out.logits.shape == (*BATCH, o, n)
-        assert out.weights.shape == (*BATCH, o)
-        probs = jax.eval_shape(lambda p, o: nets.actor.apply(p, o).probs, actor_params, obs)
+        assert out.mixture_logits.shape == out.present.shape == (*BATCH, o)
+        probs = jax.eval_shape(lambda p, o: mixture_policy(nets.actor.apply(p, o)).probs(), actor_params, obs)
         assert probs.shape == (*BATCH, n)
-    if nets.config.continuous:
+    if not nets.config.is_discrete:
         k_actions = jnp.zeros((*BATCH, 5, a_dim))
         q = jax.eval_shape(nets.critic.apply, critic_params, obs, k_actions)
         assert q.shape == (2, *BATCH, 5)
@@ -89,7 +97,7 @@ def test_output_shapes_with_leading_batch_axes(env, algo):
 
 
 def test_jit_runs_actor_and_critic_and_outputs_are_finite():
-    nets = N.make_networks(N.make_network_config("country_road", "xsac", **TINY))
+    nets = make_test_networks("country_road", "xsac", **TINY)
     actor_params = jax.jit(nets.init_actor)(KEY)
     critic_params = random_params(nets.critic.init, nets.dummy_observation(), nets.dummy_action())
     obs = random_observation(2, (4,), 100, 5, 30)
@@ -103,9 +111,7 @@ def test_jit_runs_actor_and_critic_and_outputs_are_finite():
 
 def test_float64_inputs_work_under_x64():
     with jax.enable_x64(True):
-        nets = N.make_networks(
-            N.make_network_config("tracking", "sac", actor_depth=1, critic_depth=1, **TINY)
-        )
+        nets = make_test_networks("tracking", "sac", actor_depth=1, critic_depth=1, **TINY)
         obs = nets.dummy_observation((2,))
         assert obs["state"].dtype == jnp.float64
         out = jax.jit(nets.actor.apply)(jax.jit(nets.init_actor)(KEY), obs)
@@ -171,13 +177,13 @@ def test_fourier_layer_init_statistics_and_formula():
     )
 
 
-def test_object_inputs_reshaper_and_neutral_slot(small_obs):
+def test_object_inputs_reshaper_and_neutral_object(small_obs):
     inputs, present = N.object_inputs(small_obs)
     assert inputs.shape == (*BATCH, 7, 11) and present.shape == (*BATCH, 7)
     np.testing.assert_array_equal(inputs[..., :5], small_obs["cones_set"])
     np.testing.assert_array_equal(inputs[..., 2, 5:], small_obs["state"])
     np.testing.assert_array_equal(present[0, 0], [True] * 4 + [False] * 3)
-    inputs, present = N.object_inputs(small_obs, neutral_slot=True)
+    inputs, present = N.object_inputs(small_obs, neutral_object=True)
     assert inputs.shape == (*BATCH, 8, 11) and bool(jnp.all(present[..., 0]))
     np.testing.assert_array_equal(
         inputs[..., 0, :5], jnp.broadcast_to(jnp.array([1.0, 0, 0, 0, 0]), (*BATCH, 5))
@@ -186,14 +192,8 @@ def test_object_inputs_reshaper_and_neutral_slot(small_obs):
 
 
 def test_bad_inputs_raise_clear_errors(small_obs):
-    with pytest.raises(ValueError, match="unknown env"):
-        N.make_network_config("moon", "sac")
-    with pytest.raises(ValueError, match="unknown algo"):
-        N.make_network_config("tracking", "ppo")
     with pytest.raises(ValueError, match="weight_depth"):
-        N.make_network_config("tracking", "xsac", weight_depth=4)
-    with pytest.raises(ValueError, match="unknown NetworkConfig"):
-        N.make_network_config("tracking", "xsac", widht=3)
+        N.MixtureCategoricalActor(width=4, depth=3, weight_depth=4).init(KEY, small_obs)
     with pytest.raises(ValueError, match="exactly the keys"):
         N.object_inputs({"state": small_obs["state"]})
     with pytest.raises(ValueError, match="batch axes"):
@@ -246,27 +246,6 @@ def test_deep_set_ignores_absent_rows_and_extra_padding(deep_set):
 # ---------------------------------------------------------------------------------------------
 
 
-def test_masked_mixture_weights_zero_on_absent_and_finite_gradients():
-    logits = jnp.array([[0.3, -1.2, 1e4, -1e4, 2.0], [5.0, 1.0, 0.0, 0.0, 0.0]])
-    present = jnp.array([[True, True, False, False, True], [False] * 5])
-    weights = jax.jit(N.masked_mixture_weights)(logits, present)
-    np.testing.assert_array_equal(weights[0, 2:4], 0.0)
-    np.testing.assert_allclose(weights[0].sum(), 1.0, rtol=1e-6)
-    np.testing.assert_allclose(weights[0, [0, 1, 4]], jax.nn.softmax(logits[0, [0, 1, 4]]), rtol=1e-6)
-    np.testing.assert_allclose(weights[1], 0.2)  # empty set → uniform fallback
-    entropy = lambda lg: (
-        -jnp.sum(
-            N.masked_mixture_weights(lg, present)
-            * jnp.log(jnp.clip(N.masked_mixture_weights(lg, present), 1e-10, 1))
-        )
-    )
-    grad = jax.jit(jax.grad(entropy))(logits)
-    assert bool(jnp.all(jnp.isfinite(grad)))
-    np.testing.assert_array_equal(grad[0, 2:4], 0.0)
-    # centring changes nothing
-    np.testing.assert_allclose(jax.jit(N.masked_mixture_weights)(logits - 3.7, present), weights, rtol=1e-5)
-
-
 @pytest.fixture(scope="module")
 def mc_obs():
     """Two different observations (7 slots, 4 present), each repeated 2000 times on a second batch axis."""
@@ -279,28 +258,30 @@ def gaussian_actor(request, small_obs):
     """φ_d = 1 (layers 2-3 run only for the sampled object) and φ_d = 3 (the configs' default, only the
     heads run for it). The parameter tree does not depend on φ_d, so both share one set."""
     actor = N.MixtureGaussianActor(
-        action_dim=3, width=8, depth=3, weight_depth=request.param, num_components=2
+        action_dim=3, width=8, depth=3, weight_depth=request.param, components_per_object=2
     )
-    params = random_params(N.MixtureGaussianActor(width=8, depth=3, num_components=2).init, small_obs)
+    params = random_params(N.MixtureGaussianActor(width=8, depth=3, components_per_object=2).init, small_obs)
     full = jax.jit(actor.apply)
     fast = jax.jit(lambda p, o, k: actor.apply(p, o, k, method="sample_fast"))
     return actor, params, full, fast
 
 
-def test_gaussian_actor_masks_absent_objects(gaussian_actor, small_obs):
+def test_gaussian_actor_policy_masks_absent_objects(gaussian_actor, small_obs):
     _, params, full, _ = gaussian_actor
     out = full(params, small_obs)
     assert out.means.shape == (*BATCH, 7, 2, 3)
-    np.testing.assert_array_equal(out.mixture_logits[..., 4:], np.float32(N.MASKED_LOGIT))
-    np.testing.assert_array_equal(out.weights[..., 4:], 0.0)
-    assert bool(jnp.all(out.weights[..., :4] > 0))
-    np.testing.assert_allclose(out.weights.sum(-1), 1.0, rtol=1e-6)
-    np.testing.assert_allclose(out.component_weights.sum((-1, -2)), 1.0, rtol=1e-6)
-    assert bool(jnp.all(out.log_stds >= -5)) and bool(jnp.all(out.log_stds <= 2))
+    np.testing.assert_array_equal(out.present[..., :4], True)
+    np.testing.assert_array_equal(out.present[..., 4:], False)
+    np.testing.assert_allclose(out.mixture_logits.mean(-1), 0.0, atol=1e-6)  # centred over all slots
+    weights = object_weights(out)
+    np.testing.assert_array_equal(weights[..., 4:], 0.0)
+    assert bool(jnp.all(weights[..., :4] > 0))
+    np.testing.assert_allclose(weights.sum(-1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(component_weights(out).sum((-1, -2)), 1.0, rtol=1e-6)
     # the branch depth changes where φ reads from, so the weights differ between φ_d but stay valid
     garbage = small_obs["cones_set"].at[..., 4:, 1:].set(0.7)  # absent rows' contents are irrelevant
     dirty = full(params, {**small_obs, "cones_set": garbage})
-    np.testing.assert_allclose(dirty.weights, out.weights, rtol=1e-6)
+    np.testing.assert_allclose(object_weights(dirty), weights, rtol=1e-6)
     np.testing.assert_allclose(dirty.means[..., :4, :, :], out.means[..., :4, :, :], rtol=1e-6)
 
 
@@ -311,20 +292,24 @@ def test_fast_path_matches_full_path_and_mixture_frequencies(gaussian_actor, mc_
     assert sample.action.shape == (2, 2000, 3) and sample.object_index.shape == (2, 2000)
     assert bool(jnp.all(jnp.abs(sample.action) <= 1))
     assert bool(jnp.all(sample.object_index < 4))  # only present objects are drawn
-    np.testing.assert_allclose(sample.mixture_logits, out.mixture_logits, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(
+        sample.mixture_logits[..., :4], out.mixture_logits[..., :4], rtol=1e-6, atol=1e-6
+    )
+    assert bool(jnp.all(sample.mixture_logits[..., 4:] < -1e29))  # absent: the distributions' sentinel
     # the head run for the sampled object alone reproduces the full path's outputs for that object
     idx = sample.object_index[..., None, None, None]
     fast_means, fast_log_stds = sample.head
     np.testing.assert_allclose(fast_means, jnp.take_along_axis(out.means, idx, -3)[..., 0, :, :], atol=1e-6)
+    chosen_log_stds = jnp.take_along_axis(out.log_stds, idx, -3)[..., 0, :, :]
     np.testing.assert_allclose(
-        fast_log_stds, jnp.take_along_axis(out.log_stds, idx, -3)[..., 0, :, :], atol=1e-6
+        fast_log_stds, jnp.clip(chosen_log_stds, MIXTURE_LOG_STD_MIN, LOG_STD_MAX), atol=1e-6
     )
     # objects are drawn with frequencies w_o, components uniformly (C = 2), per batch row independently
     draws = mc_obs["state"].shape[1]
     tolerance = 4 * np.sqrt(0.25 / draws)
     for row in range(2):
         freq = np.bincount(np.asarray(sample.object_index[row]), minlength=7) / draws
-        np.testing.assert_allclose(freq, out.weights[row, 0], atol=tolerance)
+        np.testing.assert_allclose(freq, object_weights(out)[row, 0], atol=tolerance)
         assert abs(float(jnp.mean(sample.component_index[row])) - 0.5) < tolerance
     # the action is tanh(μ + σ ε) of the chosen component: ε recovered from it is standard normal
     comp = sample.component_index[..., None, None]
@@ -339,24 +324,24 @@ def test_gaussian_actor_is_permutation_equivariant(gaussian_actor, small_obs):
     order = jnp.array([3, 6, 0, 2, 5, 1, 4])
     permuted = {**small_obs, "cones_set": small_obs["cones_set"][..., order, :]}
     out, out_p = full(params, small_obs), full(params, permuted)
-    np.testing.assert_allclose(out_p.weights, out.weights[..., order], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(object_weights(out_p), object_weights(out)[..., order], rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(out_p.means, out.means[..., order, :, :], rtol=1e-5, atol=1e-6)
 
 
-def test_log_std_clips(small_obs):
+def test_actors_return_raw_log_stds_and_the_fast_path_clips(small_obs):
     actor = N.MixtureGaussianActor(width=4, depth=1)
     params = random_params(actor.init, small_obs)
     apply = jax.jit(actor.apply)
-    for bias, expected in ((100.0, 2.0), (-100.0, -5.0)):
+    fast = jax.jit(lambda p, o, k: actor.apply(p, o, k, method="sample_fast"))
+    for bias, clipped in ((100.0, LOG_STD_MAX), (-100.0, MIXTURE_LOG_STD_MIN)):
         params["params"]["log_std"]["bias"] = jnp.full((3,), bias)
-        np.testing.assert_array_equal(apply(params, small_obs).log_stds, expected)
+        assert bool(jnp.all(jnp.abs(apply(params, small_obs).log_stds) > 50))  # not clipped
+        np.testing.assert_array_equal(fast(params, small_obs, rng_key(1)).head[1], clipped)
     tracking_obs = {"state": jnp.zeros(6), "trajectory_set": N.trajectory_to_set(jnp.zeros(50))}
     actor = N.GaussianActor(N.FlatPEExtractor(), widths=(4,))
     params = random_params(actor.init, tracking_obs)
-    apply = jax.jit(actor.apply)
-    for bias, expected in ((100.0, 2.0), (-100.0, -20.0)):
-        params["params"]["log_std"]["bias"] = jnp.full((3,), bias)
-        np.testing.assert_array_equal(apply(params, tracking_obs).log_std, expected)
+    params["params"]["log_std"]["bias"] = jnp.full((3,), -100.0)
+    assert bool(jnp.all(jax.jit(actor.apply)(params, tracking_obs).log_std < SAC_LOG_STD_MIN))
 
 
 def test_uniform_mixture_ablation_has_no_phi_and_uniform_weights(small_obs):
@@ -364,7 +349,8 @@ def test_uniform_mixture_ablation_has_no_phi_and_uniform_weights(small_obs):
     params = random_params(actor.init, small_obs)
     assert set(params["params"]["trunk"]) == {"hidden_0", "hidden_1"}
     out = jax.jit(actor.apply)(params, small_obs)
-    np.testing.assert_allclose(out.weights, jnp.broadcast_to(jnp.array([0.25] * 4 + [0.0] * 3), (*BATCH, 7)))
+    expected = jnp.broadcast_to(jnp.array([0.25] * 4 + [0.0] * 3), (*BATCH, 7))
+    np.testing.assert_allclose(object_weights(out), expected)
 
 
 @pytest.fixture(scope="module", params=[1])
@@ -378,18 +364,17 @@ def categorical_actor(request, small_obs):
 def test_categorical_mixture_outputs(categorical_actor, small_obs):
     _, params, full, _ = categorical_actor
     out = full(params, small_obs)
-    np.testing.assert_allclose(out.probs.sum(-1), 1.0, rtol=1e-6)
-    np.testing.assert_array_equal(out.logits[..., 4:, :], 0.0)  # absent → uniform component
-    np.testing.assert_allclose(out.logits[..., :4, :].mean(-1), 0.0, atol=1e-6)  # centred over actions
-    np.testing.assert_array_equal(out.weights[..., 4:], 0.0)
-    np.testing.assert_array_equal(out.mixture_logits[..., 4:], np.float32(N.MASKED_LOGIT))
+    np.testing.assert_allclose(out.logits.mean(-1), 0.0, atol=1e-6)  # centred over actions
+    policy = mixture_policy(out)
+    np.testing.assert_allclose(policy.probs().sum(-1), 1.0, rtol=1e-6)
+    np.testing.assert_array_equal(policy.weights[..., 4:], 0.0)
+    object_probs = jax.nn.softmax(out.logits, axis=-1)
     np.testing.assert_allclose(
-        out.probs, jnp.einsum("...o,...on->...n", out.weights, out.object_probs), rtol=1e-6
+        policy.probs(), jnp.einsum("...o,...on->...n", policy.weights, object_probs), rtol=1e-6
     )
     # with one present object the mixture is that object's distribution (§8 item 7)
-    single = random_observation(8, BATCH, 7, 5, 1)
-    one = full(params, single)
-    np.testing.assert_allclose(one.probs, one.object_probs[..., 0, :], rtol=1e-6)
+    one = full(params, random_observation(8, BATCH, 7, 5, 1))
+    np.testing.assert_allclose(mixture_policy(one).probs(), jax.nn.softmax(one.logits[..., 0, :]), rtol=1e-6)
 
 
 def test_categorical_fast_path(categorical_actor, mc_obs):
@@ -404,16 +389,15 @@ def test_categorical_fast_path(categorical_actor, mc_obs):
     draws = mc_obs["state"].shape[1]
     for row in range(2):
         freq = np.bincount(np.asarray(sample.action[row]), minlength=12) / draws
-        np.testing.assert_allclose(freq, out.probs[row, 0], atol=4 * np.sqrt(0.25 / draws))
+        np.testing.assert_allclose(freq, mixture_policy(out).probs()[row, 0], atol=4 * np.sqrt(0.25 / draws))
 
 
 def test_categorical_mixture_is_permutation_invariant(categorical_actor, small_obs):
     _, params, full, _ = categorical_actor
     order = jnp.array([6, 3, 1, 0, 5, 2, 4])
     permuted = {**small_obs, "cones_set": small_obs["cones_set"][..., order, :]}
-    np.testing.assert_allclose(
-        full(params, permuted).probs, full(params, small_obs).probs, rtol=1e-5, atol=1e-7
-    )
+    probs = [mixture_policy(full(params, obs)).probs() for obs in (permuted, small_obs)]
+    np.testing.assert_allclose(*probs, rtol=1e-5, atol=1e-7)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -423,7 +407,7 @@ def test_categorical_mixture_is_permutation_invariant(categorical_actor, small_o
 
 @pytest.fixture(scope="module")
 def continuous_critic(small_obs):
-    critic = N.ContinuousCritic(N.DeepSetExtractor(width=8, state_width=8), widths=(8, 8), num_critics=2)
+    critic = N.ContinuousCritic(N.DeepSetExtractor(width=8, state_width=8), widths=(8, 8), n_critics=2)
     params = random_params(critic.init, small_obs, jnp.zeros((*BATCH, 3)))
     return critic, params, jax.jit(critic.apply)
 
@@ -462,7 +446,7 @@ def test_critic_split_first_layer_equals_concatenation(continuous_critic, small_
 
 
 def test_critic_ensemble_members_are_initialised_independently():
-    critic = N.ContinuousCritic(N.FlatPEExtractor(), widths=(4,), num_critics=3)
+    critic = N.ContinuousCritic(N.FlatPEExtractor(), widths=(4,), n_critics=3)
     obs = {"state": jnp.zeros(6), "trajectory_set": N.trajectory_to_set(jnp.zeros(4))}
     kernel = jax.jit(critic.init)(KEY, obs, jnp.zeros(3))["params"]["heads"]["dense_0"]["kernel"]
     assert kernel.shape == (3, 9 * 6 + 9 * 4 + 3, 4)
@@ -500,9 +484,9 @@ def test_duelling_critic_mean_advantage_is_zero(small_obs):
 
 
 def count(env, algo, which, **overrides):
-    nets = N.make_networks(N.make_network_config(env, algo, **overrides))
+    nets = make_test_networks(env, algo, **overrides)
     init = nets.init_actor if which == "actor" else nets.init_critic
-    return N.count_params(jax.eval_shape(init, KEY))
+    return count_params(jax.eval_shape(init, KEY))
 
 
 def test_country_road_parameter_counts_match_paper_table_1():
@@ -516,12 +500,12 @@ def test_country_road_parameter_counts_match_paper_table_1():
 
 def test_fast_path_flops_against_paper_table_1():
     table = {1: 988_262, 2: 14_015_078, 3: 27_041_896}
-    full = N.mixture_actor_sample_flops(100, 11, 256, 3, 3, 6, fast=False)
+    full = costs.mixture_actor_sample_flops(100, 11, 256, 3, 3, 6, fast=False)
     for weight_depth, paper in table.items():
-        fast = N.mixture_actor_sample_flops(100, 11, 256, 3, weight_depth, 6, fast=True)
+        fast = costs.mixture_actor_sample_flops(100, 11, 256, 3, weight_depth, 6, fast=True)
         assert fast <= full
         assert abs(fast / paper - 1) < 0.10  # dense layers dominate; the paper also counts the sampler
-    assert N.mixture_actor_sample_flops(100, 11, 256, 3, 1, 6, fast=True) < full / 25
+    assert costs.mixture_actor_sample_flops(100, 11, 256, 3, 1, 6, fast=True) < full / 25
 
 
 @pytest.mark.slow
@@ -531,7 +515,7 @@ def test_fast_path_xla_flops_match_paper_table_1():
     obs = N.dummy_observation(N.ENV_OBSERVATIONS["country_road"])
     obs["cones_set"] = obs["cones_set"].at[:, 0].set(1.0)
     for weight_depth, paper in table.items():
-        nets = N.make_networks(N.make_network_config("country_road", "xsac", weight_depth=weight_depth))
+        nets = costs.country_road_networks("xsac", weight_depth=weight_depth)
         params = jax.eval_shape(nets.init_actor, KEY)
         sample = lambda p, o, k, nets=nets: nets.actor.apply(p, o, k, method="sample_fast")
         cost = jax.jit(sample).lower(params, obs, KEY).compile().cost_analysis()
@@ -552,15 +536,16 @@ def test_intersection_observation_layout_and_defaults():
     obs = N.dummy_observation(shape, (2, 8))
     assert N.find_set_key(obs) == "vehicles_set"
     assert obs["vehicles_set"].shape == (2, 8, 8, 7) and obs["state"].shape == (2, 8, 66)
-    for algo in N.ALGORITHMS:
-        config = N.make_network_config("intersection", algo)
-        assert (config.extractor, config.fe_width, config.fourier_scale) == ("deepset", 256, None)
+    for algo in ALGOS:
+        nets = make_test_networks("intersection", algo)
+        config = nets.config
+        assert (config.feature_extractor, config.fe_width, config.fourier_scale) == ("deepset", 256, None)
         assert (config.fe_item_depth, config.fe_set_depth, config.critic_depth) == (3, 2, 2)
-        assert config.actor_depth == (3 if config.explainable else 2)
-        assert config.neutral_object == config.neutral_slot == config.explainable
-        assert config.num_mixture_objects == (9 if config.explainable else 1)
+        assert config.actor_depth == (3 if config.is_mixture else 2)
+        assert config.neutral_object == config.is_mixture
+        assert nets.num_mixture_objects == (9 if config.is_mixture else 1)
     with pytest.raises(ValueError, match="neutral_object"):
-        N.make_network_config("intersection", "sac", neutral_object=True)
+        make_test_networks("intersection", "sac", neutral_object=True)
 
 
 def test_intersection_critic_extractor_parameter_count():
@@ -570,10 +555,10 @@ def test_intersection_critic_extractor_parameter_count():
     item = (6 * width + width) + 2 * (width * width + width)
     set_encoder = 2 * (width * width + width)
     state = 66 * width + width
-    extractor = N.make_extractor(N.make_network_config("intersection", "xsac"))
+    extractor = N.make_extractor(make_test_networks("intersection", "xsac").config)
     obs = N.dummy_observation(N.ENV_OBSERVATIONS["intersection"], (3,))
     params = jax.eval_shape(extractor.init, KEY, obs)
-    assert N.count_params(params) == item + set_encoder + state
+    assert count_params(params) == item + set_encoder + state
     assert "FourierFeatures_0" not in str(params) and "linear" not in params["params"]["deep_set"]["item_0"]
     assert jax.eval_shape(extractor.apply, params, obs).shape == (3, 2 * width)
     # critic: extractor + 2 heads of (512 + 3 → 256 → 256 → 1)
@@ -585,31 +570,31 @@ def test_deep_set_depths_are_configurable():
     extractor = N.DeepSetExtractor(width=4, item_depth=1, set_depth=0, fourier_scale=None, state_width=3)
     obs = random_observation(4, (), 5, 5, 2)
     params = jax.eval_shape(extractor.init, KEY, obs)
-    assert N.count_params(params) == (4 * 4 + 4) + (6 * 3 + 3)
-    config = N.make_network_config("country_road", "sac", fe_item_depth=2, fe_set_depth=1, **TINY)
-    deep_set = jax.eval_shape(N.make_networks(config).init_critic, KEY)["params"]["extractor"]["deep_set"]
+    assert count_params(params) == (4 * 4 + 4) + (6 * 3 + 3)
+    nets = make_test_networks("country_road", "sac", fe_item_depth=2, fe_set_depth=1, **TINY)
+    deep_set = jax.eval_shape(nets.init_critic, KEY)["params"]["extractor"]["deep_set"]
     assert sorted(deep_set) == ["item_0", "item_1", "set_encoder"]
     assert sorted(deep_set["set_encoder"]) == ["dense_0"]
     with pytest.raises(ValueError, match="fe_item_depth"):
-        N.make_network_config("country_road", "sac", fe_item_depth=0)
+        make_test_networks("country_road", "sac", fe_item_depth=0)
 
 
 def test_neutral_object_is_a_state_only_component():
     """With no vehicle present the neutral object takes all the weight; it never depends on the set."""
-    config = N.make_network_config("intersection", "xdsac", **TINY)
-    nets = N.make_networks(config)
+    nets = make_test_networks("intersection", "xdsac", **TINY)
     params = random_params(nets.actor.init, nets.dummy_observation())
     apply = jax.jit(nets.actor.apply)
     rng = np.random.default_rng(5)
     state = jnp.asarray(rng.uniform(-1, 1, (4, 66)), jnp.float32)
     vehicles = np.zeros((4, 8, 7), np.float32)
     empty = apply(params, {"state": state, "vehicles_set": jnp.asarray(vehicles)})
-    np.testing.assert_array_equal(empty.weights, np.eye(9)[[0] * 4])
+    np.testing.assert_array_equal(object_weights(empty), np.eye(9)[[0] * 4])
     vehicles[:, :3] = rng.uniform(-1, 1, (4, 3, 7))
     vehicles[:, :3, 0] = 1.0
     full = apply(params, {"state": state, "vehicles_set": jnp.asarray(vehicles)})
     np.testing.assert_array_equal(full.present[:, :4], True)
     np.testing.assert_array_equal(full.present[:, 4:], False)
-    np.testing.assert_allclose(jnp.sum(full.weights, -1), 1.0, rtol=1e-6)
-    assert bool(jnp.all(full.weights[:, 0] > 0)) and bool(jnp.all(full.weights[:, 0] < 1))
+    weights = object_weights(full)
+    np.testing.assert_allclose(jnp.sum(weights, -1), 1.0, rtol=1e-6)
+    assert bool(jnp.all(weights[:, 0] > 0)) and bool(jnp.all(weights[:, 0] < 1))
     np.testing.assert_allclose(full.logits[:, 0], empty.logits[:, 0], rtol=1e-6)  # neutral head: state only

@@ -57,13 +57,7 @@ from flax import struct
 from xrl_jax import losses
 from xrl_jax.config import AgentConfig
 from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture, squashed_gaussian
-from xrl_jax.networks import (
-    NetworkConfig,
-    Networks,
-    ObservationShape,
-    find_set_key,
-    make_networks,
-)
+from xrl_jax.networks import Networks, ObservationShape, find_set_key, make_networks
 
 Array = jax.Array
 ACT_MODES = ("train", "eval", "deterministic")
@@ -131,31 +125,6 @@ def observation_shape(obs_example: Mapping[str, Any]) -> ObservationShape:
     return ObservationShape(set_key, int(objects.shape[0]), int(objects.shape[1]), int(state.shape[0]))
 
 
-def _network_config(config: AgentConfig, obs_shape: ObservationShape, action_size: int) -> NetworkConfig:
-    return NetworkConfig(
-        env="custom",
-        algo=config.algo,
-        obs_shape=obs_shape,
-        actor_width=config.actor_width,
-        actor_depth=config.actor_depth,
-        critic_width=config.critic_width,
-        critic_depth=config.critic_depth,
-        weight_depth=config.actor_depth if config.weight_depth is None else config.weight_depth,
-        num_components=config.components_per_object,
-        neutral_object=config.neutral_object,
-        num_critics=config.n_critics,
-        duelling=config.duelling,
-        action_dim=action_size if not config.is_discrete else 1,
-        num_actions=action_size if config.is_discrete else 1,
-        extractor=config.feature_extractor,
-        fe_width=config.fe_width,
-        fe_item_depth=config.fe_item_depth,
-        fe_set_depth=config.fe_set_depth,
-        fourier_scale=config.fourier_scale,
-        pe_freqs=config.pe_freqs,
-    )
-
-
 def _adam(clip_norm: float | None) -> optax.GradientTransformation:
     """Adam without the learning-rate scaling (applied from the traced hparams); optional clipping."""
     if clip_norm is None:
@@ -188,7 +157,7 @@ class Agent:
     @property
     def neutral_object(self) -> bool:
         """Whether the X actor prepends the neutral object (then explanation index 0 is the state)."""
-        return self.networks.config.neutral_object
+        return self.config.neutral_object
 
     @property
     def num_mixture_objects(self) -> int:
@@ -196,7 +165,7 @@ class Agent:
 
         ``policy(...).weights`` has ``num_mixture_objects * components_per_object`` entries for X agents.
         """
-        return self.networks.config.num_mixture_objects
+        return self.networks.num_mixture_objects
 
     @property
     def _actor_tx(self) -> optax.GradientTransformation:
@@ -234,10 +203,8 @@ class Agent:
             )
         actor_key, critic_key = jax.random.split(key)
         actor_params = self.networks.actor.init(actor_key, obs_example)
-        if self.is_discrete:
-            critic_params = self.networks.critic.init(critic_key, obs_example)
-        else:
-            critic_params = self.networks.critic.init(critic_key, obs_example, self.networks.dummy_action())
+        critic_args = (obs_example,) if self.is_discrete else (obs_example, self.networks.dummy_action())
+        critic_params = self.networks.critic.init(critic_key, *critic_args)
         if hparams is None:
             hparams = make_hparams(self.config, self.action_size)
         log_alpha = _float(math.log(self.config.init_alpha))
@@ -267,19 +234,20 @@ class Agent:
     def policy_from_output(self, out: Any) -> SquashedGaussianMixture | CategoricalMixture:
         """The distribution of :meth:`policy` from an already computed actor output."""
         cfg = self.config
+        log_std = dict(log_std_min=cfg.resolved_log_std_min(), log_std_max=cfg.log_std_max)
         if self.algo == "sac":
-            return squashed_gaussian(out.mean, out.log_std, (cfg.resolved_log_std_min(), cfg.log_std_max))
+            return squashed_gaussian(out.mean, out.log_std, **log_std)
         if self.algo == "dsac":
             return CategoricalMixture.create(out[..., None, :])
         logits = None if cfg.uniform_mixture else out.mixture_logits
         if self.algo == "xsac":
             return SquashedGaussianMixture.from_objects(
-                out.means, out.log_stds, logits, out.present, (cfg.resolved_log_std_min(), cfg.log_std_max)
+                out.means, out.log_stds, logits, out.present, **log_std
             )
         return CategoricalMixture.create(out.logits, logits, out.present)
 
     def actor_output(self, actor_params: Any, obs: Mapping[str, Array]) -> Any:
-        """Raw actor outputs (``networks`` dataclasses), e.g. for explanation figures."""
+        """Raw actor outputs (``networks`` dataclasses: not masked, log σ not clipped), for explanations."""
         return self.networks.actor.apply(actor_params, obs)
 
     def random_action(self, key: Array, batch_shape: tuple[int, ...] = ()) -> Array:
@@ -516,10 +484,7 @@ def make_agent(config: AgentConfig, obs_example: Mapping[str, Any], action_size:
     if not isinstance(action_size, int) or action_size < 1:
         raise ValueError(f"action_size must be a positive integer, got {action_size!r}")
     obs_shape = observation_shape(obs_example)
-    networks = make_networks(_network_config(config, obs_shape, action_size))
-    log_std_range = (config.resolved_log_std_min(), config.log_std_max)
-    if config.algo in ("sac", "xsac"):  # the networks default to the ranges of §2.1 / §2.3; honour overrides
-        networks = dataclasses.replace(networks, actor=networks.actor.clone(log_std_range=log_std_range))
+    networks = make_networks(config, obs_shape, action_size)
     return Agent(config=config, networks=networks, obs_shape=obs_shape, action_size=action_size)
 
 

@@ -43,10 +43,12 @@ from flax import struct
 
 Array = jax.Array
 
-LOG_STD_BOUNDS = (-5.0, 2.0)
-"""log σ clip of the mixture policies (§2.3; σ ≥ e^-5 keeps the densities well-conditioned)."""
-SAC_LOG_STD_BOUNDS = (-20.0, 2.0)
-"""log σ clip of the baseline SAC actor (SB3 limits, §2.1)."""
+MIXTURE_LOG_STD_MIN = -5.0
+"""Lower log σ clip of the mixture policies (§2.3; σ ≥ e^-5 keeps the densities well-conditioned)."""
+SAC_LOG_STD_MIN = -20.0
+"""Lower log σ clip of the baseline SAC actor (SB3 limits, §2.1)."""
+LOG_STD_MAX = 2.0
+"""Upper log σ clip of every Gaussian policy (§2.1, §2.3)."""
 TANH_JACOBIAN_EPS = 1e-6
 """ε in the reference's squash correction Σ_d log(1 - a_d² + ε) (§3.2, §7.3)."""
 PROB_FLOOR = 1e-10
@@ -99,6 +101,20 @@ def masked_log_softmax(logits: Array, mask: Array | None = None) -> Array:
     return jnp.where(effective, shifted - log_norm, ABSENT_LOG_WEIGHT)
 
 
+def masked_logits(logits: Array, mask: Array | None = None) -> Array:
+    """Logits with absent slots at ``ABSENT_LOG_WEIGHT`` (finite, so 0·logit stays 0)."""
+    logits = _as_float(logits)
+    return jnp.where(_as_present(mask, logits.shape), logits, ABSENT_LOG_WEIGHT)
+
+
+def sample_slot(key: Array, masked: Array, mask: Array | None = None) -> Array:
+    """One slot per row drawn from :func:`masked_logits` output (..., K): absent slots are never
+    drawn, and a row without any present slot draws uniformly over all slots (§3.1.4)."""
+    present = _as_present(mask, masked.shape)
+    any_present = jnp.any(present, axis=-1, keepdims=True)
+    return jax.random.categorical(key, jnp.where(any_present, masked, 0.0), axis=-1)
+
+
 def masked_softmax(logits: Array, mask: Array | None = None) -> Array:
     """Mixture weights w_o = m_o·exp(ℓ_o) / Σ_j m_j·exp(ℓ_j) (§3.1), exact zeros on absent slots."""
     return jnp.exp(masked_log_softmax(logits, mask))
@@ -112,6 +128,15 @@ def clipped_entropy(probs: Array, axis: int = -1) -> Array:
 # ---------------------------------------------------------------------------------------------
 # Squashed Gaussian pieces (§3.2)
 # ---------------------------------------------------------------------------------------------
+
+
+def clip_log_std(
+    log_std: Array, log_std_min: float = MIXTURE_LOG_STD_MIN, log_std_max: float = LOG_STD_MAX
+) -> Array:
+    """log σ clipped to [log_std_min, log_std_max] (zero gradient outside, like jnp.clip)."""
+    if not log_std_min <= log_std_max:
+        raise ValueError(f"log_std_min ({log_std_min}) must not exceed log_std_max ({log_std_max})")
+    return jnp.clip(log_std, log_std_min, log_std_max)
 
 
 def tanh_log_det(action: Array) -> Array:
@@ -150,13 +175,37 @@ def _mixture_log_prob(
     return log_density - tanh_log_det(action)
 
 
+class _Mixture:
+    """What both mixtures share: ``log_weights`` (..., K) and a per-component array (..., K, X)."""
+
+    log_weights: Array
+    _per_component_field = ""  # the subclass's field with the per-component array
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return getattr(self, self._per_component_field).shape[:-2]
+
+    @property
+    def num_components(self) -> int:
+        return getattr(self, self._per_component_field).shape[-2]
+
+    @property
+    def weights(self) -> Array:
+        """w_k: (..., K), exactly 0 on absent slots, summing to 1."""
+        return jnp.exp(self.log_weights)
+
+    def weights_entropy(self) -> Array:
+        """H(w) = -Σ_k w_k log clip(w_k, 1e-10, 1): the κ regulariser's entropy (eq. 10, §3.6)."""
+        return clipped_entropy(self.weights)
+
+
 # ---------------------------------------------------------------------------------------------
 # Squashed diagonal Gaussian mixture (paper eq. 6-9, §3.2-§3.4, §3.7, §3.9)
 # ---------------------------------------------------------------------------------------------
 
 
 @struct.dataclass
-class SquashedGaussianMixture:
+class SquashedGaussianMixture(_Mixture):
     """π(a|s) = Σ_k w_k Π_d h(a_d; μ_kd, σ_kd), a ∈ (-1, 1)^A, h = tanh-squashed Normal (eq. 7).
 
     Build with :meth:`create` (flat components) or :meth:`from_objects` (O objects × C
@@ -179,12 +228,13 @@ class SquashedGaussianMixture:
         log_scale: Array,
         logits: Array | None = None,
         mask: Array | None = None,
-        log_std_bounds: tuple[float, float] = LOG_STD_BOUNDS,
+        log_std_min: float = MIXTURE_LOG_STD_MIN,
+        log_std_max: float = LOG_STD_MAX,
     ) -> SquashedGaussianMixture:
         """Mixture of K components: loc, log_scale (..., K, A); logits, mask (..., K).
 
         ``logits=None`` gives uniform weights over present slots (the ``uniform_mixture``
-        ablation); log σ is clipped to ``log_std_bounds`` (zero gradient outside, like jnp.clip).
+        ablation); log σ is clipped to [log_std_min, log_std_max] (:func:`clip_log_std`).
         """
         loc, log_scale = _as_float(loc), _as_float(log_scale)
         if loc.ndim < 2 or loc.shape != log_scale.shape:
@@ -198,29 +248,22 @@ class SquashedGaussianMixture:
             )
         present = _as_present(mask, logits.shape)
         effective = _effective_present(present)[..., None]
-        low, high = log_std_bounds
-        if not low <= high:
-            raise ValueError(f"log_std_bounds must be (low, high) with low <= high, got {log_std_bounds}")
         return cls(
             loc=jnp.where(effective, loc, 0.0),
-            log_scale=jnp.where(effective, jnp.clip(log_scale, low, high), 0.0),
+            log_scale=jnp.where(effective, clip_log_std(log_scale, log_std_min, log_std_max), 0.0),
             log_weights=masked_log_softmax(logits, present),
             present=present,
         )
 
     @classmethod
     def from_objects(
-        cls,
-        loc: Array,
-        log_scale: Array,
-        logits: Array | None = None,
-        mask: Array | None = None,
-        log_std_bounds: tuple[float, float] = LOG_STD_BOUNDS,
+        cls, loc: Array, log_scale: Array, logits: Array | None = None, mask: Array | None = None, **log_std
     ) -> SquashedGaussianMixture:
         """Per-object mixture: loc, log_scale (..., O, C, A); logits, mask (..., O).
 
         Components are flattened object-major to K = O·C, k = o·C + c; each object's weight is
         split uniformly over its C components (§3.1.5), by repeating its logit C times.
+        ``log_std_min`` / ``log_std_max`` (keywords) as for :meth:`create`.
         """
         loc, log_scale = jnp.asarray(loc), jnp.asarray(log_scale)
         if loc.ndim < 3 or loc.shape != log_scale.shape:
@@ -243,18 +286,12 @@ class SquashedGaussianMixture:
             log_scale.reshape(flat),
             per_component(logits),
             per_component(mask),
-            log_std_bounds,
+            **log_std,
         )
 
     # -- shapes and weights -------------------------------------------------------------------
 
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        return self.loc.shape[:-2]
-
-    @property
-    def num_components(self) -> int:
-        return self.loc.shape[-2]
+    _per_component_field = "loc"
 
     @property
     def action_dim(self) -> int:
@@ -264,15 +301,6 @@ class SquashedGaussianMixture:
     def scale(self) -> Array:
         """σ = exp(clipped log σ): (..., K, A)."""
         return jnp.exp(self.log_scale)
-
-    @property
-    def weights(self) -> Array:
-        """w_k: (..., K), exactly 0 on absent slots, summing to 1."""
-        return jnp.exp(self.log_weights)
-
-    def weights_entropy(self) -> Array:
-        """H(w) = -Σ_k w_k log clip(w_k, 1e-10, 1): the κ regulariser's entropy (eq. 10, §3.6)."""
-        return clipped_entropy(self.weights)
 
     # -- densities ----------------------------------------------------------------------------
 
@@ -402,7 +430,7 @@ class SquashedGaussianMixture:
 
 
 def squashed_gaussian(
-    loc: Array, log_scale: Array, log_std_bounds: tuple[float, float] = SAC_LOG_STD_BOUNDS
+    loc: Array, log_scale: Array, log_std_min: float = SAC_LOG_STD_MIN, log_std_max: float = LOG_STD_MAX
 ) -> SquashedGaussianMixture:
     """The baseline SAC policy tanh(N(μ, σ)) (§2.1) as a one-component mixture.
 
@@ -410,7 +438,7 @@ def squashed_gaussian(
     """
     loc, log_scale = jnp.asarray(loc), jnp.asarray(log_scale)
     return SquashedGaussianMixture.create(
-        loc[..., None, :], log_scale[..., None, :], log_std_bounds=log_std_bounds
+        loc[..., None, :], log_scale[..., None, :], log_std_min=log_std_min, log_std_max=log_std_max
     )
 
 
@@ -420,7 +448,7 @@ def squashed_gaussian(
 
 
 @struct.dataclass
-class CategoricalMixture:
+class CategoricalMixture(_Mixture):
     """π(a|s) = Σ_o w_o q_o(a) with q_o = softmax(action logits of object o) (paper eq. 3).
 
     Fields: ``component_logits`` (..., O, N) with absent rows replaced by zeros (uniform, as
@@ -451,26 +479,11 @@ class CategoricalMixture:
             present=present,
         )
 
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        return self.component_logits.shape[:-2]
-
-    @property
-    def num_components(self) -> int:
-        return self.component_logits.shape[-2]
+    _per_component_field = "component_logits"
 
     @property
     def num_actions(self) -> int:
         return self.component_logits.shape[-1]
-
-    @property
-    def weights(self) -> Array:
-        """w_o: (..., O), exactly 0 on absent slots."""
-        return jnp.exp(self.log_weights)
-
-    def weights_entropy(self) -> Array:
-        """H(w) = -Σ_o w_o log clip(w_o, 1e-10, 1) (eq. 10, §3.6)."""
-        return clipped_entropy(self.weights)
 
     def component_log_probs(self) -> Array:
         """log q_o(a): (..., O, N)."""
@@ -529,16 +542,20 @@ class CategoricalMixture:
 
 __all__ = [
     "ABSENT_LOG_WEIGHT",
-    "LOG_STD_BOUNDS",
+    "LOG_STD_MAX",
+    "MIXTURE_LOG_STD_MIN",
     "PROB_FLOOR",
-    "SAC_LOG_STD_BOUNDS",
+    "SAC_LOG_STD_MIN",
     "TANH_JACOBIAN_EPS",
     "CategoricalMixture",
     "SquashedGaussianMixture",
+    "clip_log_std",
     "clipped_entropy",
     "masked_log_softmax",
+    "masked_logits",
     "masked_softmax",
     "safe_atanh",
+    "sample_slot",
     "squashed_gaussian",
     "tanh_log_det",
 ]

@@ -1,0 +1,55 @@
+"""Helpers for the network tests: networks at test sizes, the cost functions of experiments/costs.py,
+and the policy that the distributions build from an actor's raw output."""
+
+import importlib.util
+from pathlib import Path
+
+import jax.numpy as jnp
+
+from xrl_jax import networks
+from xrl_jax.config import DISCRETE_ALGOS, preset
+from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load_costs():
+    spec = importlib.util.spec_from_file_location("costs_for_tests", ROOT / "experiments" / "costs.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+costs = _load_costs()
+count_params = costs.count_params
+
+
+def action_size(algo: str) -> int:
+    """The scenarios' sizes: 12 discrete actions, 3 continuous action dimensions."""
+    return 12 if algo in DISCRETE_ALGOS else 3
+
+
+def make_test_networks(env: str, algo: str, **overrides) -> networks.Networks:
+    """The paper networks of (env, algo) with AgentConfig fields overridden (e.g. tiny widths)."""
+    config = preset("paper", env, algo).replace(**overrides)
+    return networks.make_networks(config, networks.ENV_OBSERVATIONS[env], action_size(algo))
+
+
+def mixture_policy(out) -> SquashedGaussianMixture | CategoricalMixture:
+    """The policy of a mixture actor's raw output (default log σ bounds), as the agents build it."""
+    if isinstance(out, networks.GaussianMixtureOutput):
+        return SquashedGaussianMixture.from_objects(out.means, out.log_stds, out.mixture_logits, out.present)
+    return CategoricalMixture.create(out.logits, out.mixture_logits, out.present)
+
+
+def object_weights(out):
+    """Object weights w_o (..., O) of a mixture actor's raw output (absent objects 0)."""
+    weights = mixture_policy(out).weights
+    if isinstance(out, networks.GaussianMixtureOutput):  # w_{o,c} = w_o / C, flattened object-major
+        return jnp.sum(weights.reshape(out.means.shape[:-1]), axis=-1)
+    return weights
+
+
+def component_weights(out):
+    """w_{o,c} = w_o / C (within-object weights are uniform, §3.1.5): (..., O, C) for XSAC outputs."""
+    return mixture_policy(out).weights.reshape(out.means.shape[:-1])
