@@ -5,6 +5,7 @@ import importlib.util
 from pathlib import Path
 
 import jax.numpy as jnp
+import numpy as np
 
 from xrl_jax import networks
 from xrl_jax.config import DISCRETE_ALGOS, preset
@@ -53,3 +54,11 @@ def object_weights(out):
 def component_weights(out):
     """w_{o,c} = w_o / C (within-object weights are uniform, §3.1.5): (..., O, C) for XSAC outputs."""
     return mixture_policy(out).weights.reshape(out.means.shape[:-1])
+
+
+def float64_object_weights(out) -> np.ndarray:
+    """w_o computed independently of the distributions, in float64 numpy: a softmax of a mixture actor's
+    raw mixture logits over the present objects (absent objects 0)."""
+    logits = np.where(out.present, np.asarray(out.mixture_logits, np.float64), -np.inf)
+    weights = np.exp(logits - logits.max(-1, keepdims=True))
+    return weights / weights.sum(-1, keepdims=True)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from network_support import float64_object_weights
 
 from xrl_jax import losses
 from xrl_jax.agents import ACT_MODES, AgentState, HyperParams, make_agent
@@ -382,10 +383,7 @@ def test_kappa_term_is_minus_kappa_times_weight_entropy(algo):
 
 def test_xdsac_actor_loss_equals_explicit_sum_over_actions():
     out = loss_checks("xdsac")
-    present = np.asarray(out["actor_output"].present)  # weights from the raw outputs, in float64
-    logits = np.where(present, np.asarray(out["actor_output"].mixture_logits, np.float64), -np.inf)
-    w = np.exp(logits - logits.max(-1, keepdims=True))
-    w /= w.sum(-1, keepdims=True)
+    w = float64_object_weights(out["actor_output"])
     q_obj = np.asarray(jax.nn.softmax(out["actor_output"].logits, axis=-1), np.float64)
     q = np.asarray(out["q"], np.float64).mean(0)
     total = 0.0
