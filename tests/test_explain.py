@@ -7,7 +7,12 @@ import pytest
 
 from xrl_jax.agents import make_agent
 from xrl_jax.config import preset
-from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture
+from xrl_jax.distributions import (
+    LOG_STD_MAX,
+    MIXTURE_LOG_STD_MIN,
+    CategoricalMixture,
+    SquashedGaussianMixture,
+)
 from xrl_jax.explain import explain, keep_components, prune
 from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
 
@@ -22,6 +27,14 @@ def observations(key, batch=(4,), present=37):
     filled = jnp.arange(SHAPE.num_objects) < present
     cones = jnp.where(filled[:, None], cones.at[..., 0].set(1.0), 0.0)
     return {"state": jax.random.uniform(key_state, (*batch, SHAPE.state_dim), minval=-1), "cones_set": cones}
+
+
+def reference_weights(out) -> np.ndarray:
+    """Object weights w_o from the actor's raw output, independently of ``distributions``: the
+    softmax of the mixture logits over the present objects (absent ones weigh 0)."""
+    logits = np.where(np.asarray(out.present), np.asarray(out.mixture_logits, np.float64), -np.inf)
+    weights = np.exp(logits - logits.max(-1, keepdims=True))
+    return weights / weights.sum(-1, keepdims=True)
 
 
 @pytest.fixture(scope="module", params=["sac", "dsac", "xsac", "xdsac"])
@@ -57,7 +70,7 @@ def test_discrete_weighted_sum_of_objects_is_the_policy(agent_and_state):
     np.testing.assert_allclose(combined, explanation.policy.probs(), atol=1e-6)
     if agent.config.algo == "xdsac":  # independently from the raw network outputs
         out = agent.actor_output(state.actor_params, obs)
-        independent = np.einsum("bo,bon->bn", np.asarray(out.weights), np.asarray(jax.nn.softmax(out.logits)))
+        independent = np.einsum("bo,bon->bn", reference_weights(out), np.asarray(jax.nn.softmax(out.logits)))
         np.testing.assert_allclose(combined, independent, atol=1e-6)
 
 
@@ -72,10 +85,10 @@ def test_continuous_weighted_sum_of_object_densities_is_the_policy_density(agent
     # Independent density: Σ_o w_o Π_d Normal(atanh a_d; μ, σ) / (1 − a_d²) from the raw outputs.
     pre = np.arctanh(np.asarray(actions, np.float64))[:, None, :]
     mean = np.asarray(out.means, np.float64)[:, :, 0, :]
-    std = np.exp(np.asarray(out.log_stds, np.float64)[:, :, 0, :])
+    std = np.exp(np.clip(np.asarray(out.log_stds, np.float64), MIXTURE_LOG_STD_MIN, LOG_STD_MAX)[:, :, 0, :])
     normal = np.exp(-0.5 * ((pre - mean) / std) ** 2) / (np.sqrt(2 * np.pi) * std)
     per_object = np.prod(normal / (1 - np.asarray(actions, np.float64)[:, None, :] ** 2), axis=-1)
-    density = np.sum(np.asarray(out.weights, np.float64) * per_object, axis=-1)
+    density = np.sum(reference_weights(out) * per_object, axis=-1)
     ours = np.exp(np.asarray(explanation.policy.log_prob(actions), np.float64))
     np.testing.assert_allclose(ours, density, rtol=2e-3)  # the reference's Jacobian adds 1e-6 to 1 − a²
 
