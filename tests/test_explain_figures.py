@@ -25,6 +25,8 @@ from xrl_jax.explain_figures import (
     component_density_images,
     discrete_matrix,
     draw_explanation,
+    explained_frame,
+    intersection_objects,
     mixture_image,
     scene_for,
     scene_objects,
@@ -60,6 +62,16 @@ def draw(step, objects, **options):
     frame = render_frame(Pose(0.0, 0.0, 0.3), width=320, height=180, overlay=overlay, hud=False)
     assert frame.shape == (180, 320, 3)
     return captured["glyphs"], captured["patches"]
+
+
+def intersection_frame(state, params, obs, explanation, ego_slot, mirrored=False, **options):
+    """One intersection frame following ``ego_slot`` with that car's explanation (neutral object
+    first, then the observed vehicles) drawn on it, and the glyphs drawn."""
+    step = step_explanation(explanation, mirrored)
+    objects = intersection_objects(state, obs, ego_slot, True, step.is_mixture)
+    return explained_frame(
+        "intersection", state, params, None, step, objects, ego_slot=ego_slot, mirrored=mirrored, **options
+    )
 
 
 def objects_ahead(count):
@@ -273,7 +285,7 @@ def test_episode_frames_are_identical_under_the_same_key(tracking_episode):
 
 def test_intersection_frame_draws_the_neutral_component_at_the_ego_and_others_at_their_vehicles():
     from xrl_jax.explain import explain
-    from xrl_jax.explain_figures import intersection_frame, slot_pose
+    from xrl_jax.explain_figures import slot_pose
 
     env, params = envs.make("intersection_discrete", max_vehicles=8)
     obs, state = jax.jit(env.reset)(jax.random.PRNGKey(0), params)
@@ -306,7 +318,6 @@ def test_intersection_frame_draws_the_neutral_component_at_the_ego_and_others_at
 
 def test_intersection_objects_name_the_observed_cars_and_put_the_neutral_one_at_the_ego():
     from envs.intersection import observe, place_vehicles
-    from xrl_jax.explain_figures import intersection_objects
 
     _, params = envs.make("intersection_discrete", max_vehicles=8)
     # ego in slot 1 (spawned third); a car ahead (slot 0, spawned last) and one behind (slot 2,
