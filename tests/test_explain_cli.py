@@ -178,13 +178,13 @@ def make_intersection_run_folder(folder: Path, algo: str) -> Path:
 
     from xrl_jax.checkpoint import save_checkpoint
     from xrl_jax.evaluate import config_document
-    from xrl_jax.explain import _trainer
+    from xrl_jax.explain import shared_trainer
     from xrl_jax.train import resolve_config
 
     cfg = resolve_config("intersection", algo, "smoke")
     folder.mkdir(parents=True)
     (folder / "config.json").write_text(json.dumps(config_document(cfg, ["test"])))
-    trainer = _trainer(cfg)  # the CLI's loads of this config then reuse it
+    trainer = shared_trainer(cfg)  # the CLI's loads of this config then reuse it
     abstract = trainer.abstract_state(1)
 
     def zeros(leaf):

@@ -146,11 +146,15 @@ def single_track_params(params, index: int):
     return params.replace(**changes)
 
 
-def _step_record(agent, agent_state, state, obs, action, reward, terminated, truncated) -> dict:
-    """The fields every episode record stores per step: the state and observation the action was
-    taken in, the policy's explanation there, the action and its mapped control, and the outcome."""
+def _act_and_record(agent, agent_state, mode: str, env_step, params, obs, state, act_key, env_key):
+    """Act at ``obs``, step the env with ``env_step`` and return ``(next_obs, next_state, info,
+    record)``; ``record`` holds the fields every episode record stores per step: the state and
+    observation the action was taken in, the policy's explanation there, the action and its mapped
+    control, and the outcome."""
+    action = agent.act(act_key, agent_state, obs, mode)
+    next_obs, next_state, reward, terminated, truncated, info = env_step(env_key, state, action, params)
     to_control = discrete_to_control if agent.is_discrete else continuous_to_control
-    return {
+    record = {
         "states": state,
         "obs": obs,
         "explanations": explain(agent, agent_state, obs),
@@ -160,6 +164,7 @@ def _step_record(agent, agent_state, state, obs, action, reward, terminated, tru
         "terminated": terminated,
         "truncated": truncated,
     }
+    return next_obs, next_state, info, record
 
 
 def make_episode_rollout(env, agent, max_steps: int, mode: str = "eval") -> Callable:
@@ -180,17 +185,16 @@ def make_episode_rollout(env, agent, max_steps: int, mode: str = "eval") -> Call
         def step(carry, step_key):
             obs, state, done = carry
             act_key, env_key = jax.random.split(step_key)
-            action = agent.act(act_key, agent_state, obs, mode)
-            next_obs, next_state, reward, terminated, truncated, _ = env.step_env(
-                env_key, state, action, params
+            next_obs, next_state, _, out = _act_and_record(
+                agent, agent_state, mode, env.step_env, params, obs, state, act_key, env_key
             )
 
             def freeze(new, old):
                 return jax.tree.map(lambda n, o: jnp.where(done, o, n), new, old)
 
-            out = _step_record(agent, agent_state, state, obs, action, reward, terminated, truncated)
             out["valid"] = ~done
-            carry = (freeze(next_obs, obs), freeze(next_state, state), done | terminated | truncated)
+            ended = done | out["terminated"] | out["truncated"]
+            carry = (freeze(next_obs, obs), freeze(next_state, state), ended)
             return carry, out
 
         carry = (obs, state, jnp.zeros((), bool))
@@ -205,7 +209,7 @@ class RunError(ValueError):
 
 
 @functools.lru_cache(maxsize=2)
-def _trainer(cfg):
+def shared_trainer(cfg):
     """The run's trainer, shared by repeated loads of one config in a process (its agent, and so
     the compiled episode rollouts, are then reused)."""
     from xrl_jax.train import get_trainer
@@ -252,7 +256,7 @@ def load_trained_agent(run_dir, seed: int = 0):
     try:
         if checkpointer.latest_step() is None:
             raise RunError(f"no checkpoint in {directory}")
-        trainer = _trainer(cfg)
+        trainer = shared_trainer(cfg)
         state, meta = checkpointer.restore(trainer.abstract_state(len(groups[group_index])))
     finally:
         checkpointer.close()
@@ -309,11 +313,10 @@ def make_multiagent_episode_rollout(env, agent, max_steps: int, mode: str = "eva
         def step(carry, t):
             obs, state, key = carry
             key, act_key = jax.random.split(key)
-            action = agent.act(act_key, agent_state, obs, mode)
-            next_obs, next_state, reward, terminated, truncated, info = env.step(
-                evaluation_step_key(stream_key, t), state, action, params
+            env_key = evaluation_step_key(stream_key, t)
+            next_obs, next_state, info, out = _act_and_record(
+                agent, agent_state, mode, env.step, params, obs, state, act_key, env_key
             )
-            out = _step_record(agent, agent_state, state, obs, action, reward, terminated, truncated)
             out.update({k: info[k] for k in ("done_reason", "acted", "alive")}, valid=jnp.ones((), bool))
             return (next_obs, next_state, key), out
 
