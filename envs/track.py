@@ -119,13 +119,3 @@ def track_from_arrays(centerline, start_xy, start_theta, cone_xy=None, cone_type
         cone_type=jnp.asarray(type_pad),
         cone_present=jnp.arange(MAX_CONES) < num_cones,
     )
-
-
-def __getattr__(name):
-    # Moved to envs.track_generator; kept reachable here for callers outside envs/ until they import it
-    # from there (PEP 562: one definition, no import cycle).
-    if name in ("generate_track", "make_track_bank"):
-        from envs import track_generator
-
-        return getattr(track_generator, name)
-    raise AttributeError(f"module 'envs.track' has no attribute {name!r}")

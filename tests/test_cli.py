@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from train_support import prepare_cache
+from train_support import one_line_error, prepare_cache
 
 from xrl_jax import train as train_mod
 
@@ -128,14 +128,6 @@ def test_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, caps
     # Resuming a finished run trains nothing and reprints the table.
     status, out, _ = call(run, capsys, "--resume", str(split), "--quiet")
     assert status == 0 and "final return" in out
-
-
-def one_line_error(status, err, *fragments):
-    assert status == 2, err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    for fragment in fragments:
-        assert fragment in lines[0], lines[0]
 
 
 @pytest.mark.parametrize(

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from PIL import Image
-from train_support import prepare_cache
+from train_support import one_line_error, prepare_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--width", "320", "--height", "180", "--max-steps", "5"]
@@ -99,14 +99,6 @@ def test_baseline_shows_only_its_distribution_and_says_so(cli, tmp_path, capsys)
     assert "baseline without per-object explanations" in err
     rows = read_lines(tmp_path / "b.attributions.jsonl")
     assert rows and all(not r["explained"] and r["objects"] == [] for r in rows)
-
-
-def one_line_error(status, err, *fragments):
-    assert status == 2, err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    for fragment in fragments:
-        assert fragment in lines[0], lines[0]
 
 
 def test_bad_input_fails_with_one_line(cli, xdsac_run, tmp_path, capsys):

@@ -21,3 +21,12 @@ def prepare_cache(folder: Path) -> None:
         target.parent.mkdir(parents=True, exist_ok=True)
         if not target.exists():
             shutil.copy(DATA / f"tracks_seed{seed}_size3.npz", target)
+
+
+def one_line_error(status, err, *fragments):
+    """A CLI's bad-input exit: status 2 and one line on standard error holding every fragment."""
+    assert status == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]

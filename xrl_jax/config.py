@@ -32,6 +32,9 @@ MIXTURE_ALGOS = ("xsac", "xdsac")
 FEATURE_EXTRACTORS = ("deepset", "flat_pe")  # names of xrl_jax.networks.make_extractor
 CRITIC_LOSSES = ("huber", "l2")
 TRUNCATION_MODES = ("drop", "bootstrap")
+MIXTURE_LOG_STD_MIN = -5.0  # lower log σ clip of the mixture policies (§2.3: σ ≥ e^-5 keeps densities sane)
+SAC_LOG_STD_MIN = -20.0  # lower log σ clip of the baseline SAC actor (§2.1)
+LOG_STD_MAX = 2.0  # upper log σ clip of every Gaussian policy (§2.1, §2.3)
 MAX_VEHICLES = 8  # vehicle slots of the intersection env (envs.intersection.MAX_AGENTS; a test checks)
 
 # Fields that become traced leaves of the agent state (``AgentState.hparams``; can differ per vmapped
@@ -79,7 +82,7 @@ class AgentConfig:
     weight_depth: int | None = _field(None, "φ_d: hidden layer feeding the mixture weights; none = last")
     uniform_mixture: bool = _field(False, "ablation §3.1.6: uniform weights over present objects")
     log_std_min: float | None = _field(None, "lower log σ bound; none = SAC −20, XSAC −5 (§7.1)")
-    log_std_max: float = _field(2.0, "upper log σ bound")
+    log_std_max: float = _field(LOG_STD_MAX, "upper log σ bound")
     # --- optimisation (static switches) ---
     critic_loss: str = _field("huber", "critic loss: huber (δ = 1, every paper config) | l2")
     clip_norm: float | None = _field(None, "global gradient-norm clipping; none = off")
@@ -111,7 +114,7 @@ class AgentConfig:
     def resolved_log_std_min(self) -> float:
         if self.log_std_min is not None:
             return float(self.log_std_min)
-        return -5.0 if self.algo == "xsac" else -20.0
+        return MIXTURE_LOG_STD_MIN if self.algo == "xsac" else SAC_LOG_STD_MIN
 
     def resolved_alpha_lr(self) -> float:
         return float(self.critic_lr if self.alpha_lr is None else self.alpha_lr)

@@ -41,14 +41,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from xrl_jax.config import LOG_STD_MAX, MIXTURE_LOG_STD_MIN, SAC_LOG_STD_MIN  # the log-σ bounds' home
+
 Array = jax.Array
 
-MIXTURE_LOG_STD_MIN = -5.0
-"""Lower log σ clip of the mixture policies (§2.3; σ ≥ e^-5 keeps the densities well-conditioned)."""
-SAC_LOG_STD_MIN = -20.0
-"""Lower log σ clip of the baseline SAC actor (SB3 limits, §2.1)."""
-LOG_STD_MAX = 2.0
-"""Upper log σ clip of every Gaussian policy (§2.1, §2.3)."""
 TANH_JACOBIAN_EPS = 1e-6
 """ε in the reference's squash correction Σ_d log(1 - a_d² + ε) (§3.2, §7.3)."""
 PROB_FLOOR = 1e-10

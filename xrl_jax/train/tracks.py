@@ -21,9 +21,14 @@ def cache_dir() -> Path:
 
 
 def _generator_fingerprint() -> str:
+    """A hash of the generator's sources: the track type and constants, and the generator itself."""
     import envs.track
+    import envs.track_generator
 
-    return hashlib.sha256(Path(envs.track.__file__).read_bytes()).hexdigest()[:12]
+    digest = hashlib.sha256()
+    for module in (envs.track, envs.track_generator):
+        digest.update(Path(module.__file__).read_bytes())
+    return digest.hexdigest()[:12]
 
 
 def track_cache_path(seed: int, size: int) -> Path:
@@ -39,7 +44,8 @@ def cached_track_bank(seed: int, size: int):
     The file name carries a hash of the generator's source and the backend, so a changed generator
     never serves stale tracks. Writes are atomic (temporary file + rename).
     """
-    from envs.track import Track, make_track_bank
+    from envs.track import Track
+    from envs.track_generator import make_track_bank
 
     path = track_cache_path(seed, size)
     fields = [f.name for f in dataclasses.fields(Track)]
