@@ -1,5 +1,6 @@
-"""Traffic of the Intersection scenario: who is on the road. Spawning at the four approaches (§2.3,
-§3.3, §3.4), the fresh state of an episode, and hand-built states (:func:`place_vehicles`).
+"""Traffic of the Intersection scenario: who is on the road. Spawning at the four approaches
+(docs/carenv-intersection.md §2.3, §3.3, §3.4), the fresh state of an episode, and hand-built
+states (:func:`place_vehicles`).
 """
 
 from __future__ import annotations

@@ -52,7 +52,8 @@ def object_weights(out):
 
 
 def component_weights(out):
-    """w_{o,c} = w_o / C (within-object weights are uniform, §3.1.5): (..., O, C) for XSAC outputs."""
+    """w_{o,c} = w_o / C (within-object weights are uniform, docs/algorithms.md §3.1.5): (..., O, C)
+    for XSAC outputs."""
     return mixture_policy(out).weights.reshape(out.means.shape[:-1])
 
 
