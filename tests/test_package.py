@@ -62,3 +62,19 @@ def test_run_rejects_non_positive_seeds():
     result = run_cli("--seeds", "0")
     assert result.returncode == 2
     assert "positive integer" in result.stderr
+
+
+def test_the_library_and_the_trainer_run_without_the_optional_distrax():
+    """distrax (and the TFP nightly it pulls) is an extra: only the distrax adaptors import it."""
+    code = (
+        "import sys; import xrl_jax.distributions, xrl_jax.agents, xrl_jax.train, envs; "
+        "assert 'distrax' not in sys.modules and 'tensorflow_probability' not in sys.modules, 'imported'"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+
+
+def test_the_config_and_the_cli_help_need_no_jax():
+    code = "import sys; import xrl_jax.config; assert 'jax' not in sys.modules, 'jax imported'"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr

@@ -35,15 +35,27 @@ Usage::
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
-import distrax
 import jax
 import jax.numpy as jnp
 from flax import struct
 
 from xrl_jax.config import LOG_STD_MAX, MIXTURE_LOG_STD_MIN, SAC_LOG_STD_MIN  # the log-σ bounds' home
 
+if TYPE_CHECKING:
+    import distrax
+
 Array = jax.Array
+
+
+def _distrax():
+    """distrax, an optional extra: only the adaptors below need it (and the TFP nightly it pulls)."""
+    try:
+        import distrax
+    except ImportError:
+        raise ImportError("the distrax adaptors need the extra: pip install 'xrl-jax[distrax]'") from None
+    return distrax
 
 TANH_JACOBIAN_EPS = 1e-6
 """ε in the reference's squash correction Σ_d log(1 - a_d² + ε) (§3.2, §7.3)."""
@@ -421,6 +433,7 @@ class SquashedGaussianMixture(_Mixture):
         For explanations and plots. Note distrax's Tanh uses the exact Jacobian, not the
         reference's 1e-6 epsilon, and its log_prob is infinite at a = ±1.
         """
+        distrax = _distrax()
         base = distrax.MultivariateNormalDiag(self.loc, self.scale)
         return distrax.Transformed(base, distrax.Block(distrax.Tanh(), ndims=1))
 
@@ -529,11 +542,11 @@ class CategoricalMixture(_Mixture):
 
     def components_distrax(self) -> distrax.Categorical:
         """Per-object categoricals q_o as one distrax distribution, batch (..., O)."""
-        return distrax.Categorical(logits=self.component_logits)
+        return _distrax().Categorical(logits=self.component_logits)
 
     def to_distrax(self) -> distrax.Categorical:
         """The mixture π as a plain distrax categorical, batch (...)."""
-        return distrax.Categorical(logits=self.log_probs())
+        return _distrax().Categorical(logits=self.log_probs())
 
 
 __all__ = [
