@@ -63,3 +63,19 @@ def float64_object_weights(out) -> np.ndarray:
     logits = np.where(out.present, np.asarray(out.mixture_logits, np.float64), -np.inf)
     weights = np.exp(logits - logits.max(-1, keepdims=True))
     return weights / weights.sum(-1, keepdims=True)
+
+
+def trajectory_to_set(trajectory):
+    """Sequence → set conversion (docs/algorithms.md §4.2): flat (..., 2L) points → rows
+    ``[1, index_i, x_i, y_i]``, the layout of the Tracking observation."""
+    trajectory = jnp.asarray(trajectory)
+    if trajectory.shape[-1] % 2:
+        raise ValueError(f"flat trajectory must have an even last axis (x, y pairs), got {trajectory.shape}")
+    length = trajectory.shape[-1] // 2
+    points = trajectory.reshape((*trajectory.shape[:-1], length, 2))
+    index = networks.tracking_index_feature(length).astype(points.dtype)
+    batch = points.shape[:-1]
+    return jnp.concatenate(
+        [jnp.ones((*batch, 1), points.dtype), jnp.broadcast_to(index[:, None], (*batch, 1)), points],
+        axis=-1,
+    )

@@ -12,6 +12,7 @@ from network_support import (
     make_test_networks,
     mixture_policy,
     object_weights,
+    trajectory_to_set,
 )
 
 from xrl_jax import networks as N
@@ -137,7 +138,7 @@ def test_tracking_index_feature_quirk_divides_by_length():
 
 def test_trajectory_to_set_rows():
     flat = jnp.arange(50.0).reshape(1, 50) / 100
-    rows = N.trajectory_to_set(flat)
+    rows = trajectory_to_set(flat)
     assert rows.shape == (1, 25, 4)
     np.testing.assert_array_equal(rows[0, :, 0], 1.0)
     np.testing.assert_allclose(rows[0, :, 1], N.tracking_index_feature(25))
@@ -157,7 +158,7 @@ def test_positional_encoding_frequency_major_layout():
 
 
 def test_flat_pe_extractor_size_and_sorted_key_order():
-    obs = {"state": jnp.full((6,), 0.2), "trajectory_set": N.trajectory_to_set(jnp.full((50,), -0.4))}
+    obs = {"state": jnp.full((6,), 0.2), "trajectory_set": trajectory_to_set(jnp.full((50,), -0.4))}
     features = jax.jit(N.FlatPEExtractor().apply)({}, obs)
     assert features.shape == (9 * 6 + 9 * 50,)
     np.testing.assert_allclose(features[:54], N.positional_encoding(obs["state"]), atol=1e-6)
@@ -337,7 +338,7 @@ def test_actors_return_raw_log_stds_and_the_fast_path_clips(small_obs):
         params["params"]["log_std"]["bias"] = jnp.full((3,), bias)
         assert bool(jnp.all(jnp.abs(apply(params, small_obs).log_stds) > 50))  # not clipped
         np.testing.assert_array_equal(fast(params, small_obs, rng_key(1)).head[1], clipped)
-    tracking_obs = {"state": jnp.zeros(6), "trajectory_set": N.trajectory_to_set(jnp.zeros(50))}
+    tracking_obs = {"state": jnp.zeros(6), "trajectory_set": trajectory_to_set(jnp.zeros(50))}
     actor = N.GaussianActor(N.FlatPEExtractor(), widths=(4,))
     params = random_params(actor.init, tracking_obs)
     params["params"]["log_std"]["bias"] = jnp.full((3,), -100.0)
@@ -447,7 +448,7 @@ def test_critic_split_first_layer_equals_concatenation(continuous_critic, small_
 
 def test_critic_ensemble_members_are_initialised_independently():
     critic = N.ContinuousCritic(N.FlatPEExtractor(), widths=(4,), n_critics=3)
-    obs = {"state": jnp.zeros(6), "trajectory_set": N.trajectory_to_set(jnp.zeros(4))}
+    obs = {"state": jnp.zeros(6), "trajectory_set": trajectory_to_set(jnp.zeros(4))}
     kernel = jax.jit(critic.init)(KEY, obs, jnp.zeros(3))["params"]["heads"]["dense_0"]["kernel"]
     assert kernel.shape == (3, 9 * 6 + 9 * 4 + 3, 4)
     assert not np.allclose(kernel[0], kernel[1]) and not np.allclose(kernel[1], kernel[2])
@@ -472,7 +473,7 @@ def test_duelling_critic_mean_advantage_is_zero(small_obs):
             q[j] - value[..., None], advantage - advantage.mean(-1, keepdims=True), atol=1e-5
         )
     plain = N.DiscreteCritic(N.FlatPEExtractor(), 12, widths=(8,), duelling=False)
-    tracking_obs = {"state": jnp.zeros(6), "trajectory_set": N.trajectory_to_set(jnp.zeros(4))}
+    tracking_obs = {"state": jnp.zeros(6), "trajectory_set": trajectory_to_set(jnp.zeros(4))}
     shapes = jax.eval_shape(plain.init, KEY, tracking_obs)
     assert set(shapes["params"]["heads"]) == {"mlp", "q"}
     assert jax.eval_shape(plain.apply, shapes, tracking_obs).shape == (2, 12)

@@ -370,7 +370,7 @@ INTERSECTION_ALPHA = 0.015  # fixed entropy coefficient of all four intersection
 # thousands of steps: the paper starts at α = 0.1 and moves log α slowly, so over a short run the
 # entropy bonus (0.1·ln 12 per step) outweighs the reward (≤ ~0.1 per step) and the policy stays
 # nearly uniform. Actor and critic rates decay to zero over the run (resolve_config); the README's
-# Results section holds what these choices measured.
+# Results section holds what these choices gave.
 QUICK_RACING_OPTIMISATION = {
     "init_alpha": 0.005,
     "alpha_lr": 1e-3,

@@ -96,21 +96,6 @@ def tracking_index_feature(length: int) -> Array:
     return 2.0 * jnp.arange(length, dtype=float_dtype()) / length - 1.0
 
 
-def trajectory_to_set(trajectory: Array) -> Array:
-    """Sequence → set conversion (§4.2): flat (..., 2L) points → rows ``[1, index_i, x_i, y_i]``."""
-    trajectory = jnp.asarray(trajectory)
-    if trajectory.shape[-1] % 2:
-        raise ValueError(f"flat trajectory must have an even last axis (x, y pairs), got {trajectory.shape}")
-    length = trajectory.shape[-1] // 2
-    points = trajectory.reshape((*trajectory.shape[:-1], length, 2))
-    index = tracking_index_feature(length).astype(points.dtype)
-    batch = points.shape[:-1]
-    return jnp.concatenate(
-        [jnp.ones((*batch, 1), points.dtype), jnp.broadcast_to(index[:, None], (*batch, 1)), points],
-        axis=-1,
-    )
-
-
 def positional_encoding(values: Array, num_freqs: int = 4, include_input: bool = True) -> Array:
     """Fourier positional encoding of a vector (§4.4), frequency-major layout.
 
@@ -270,5 +255,4 @@ __all__ = [
     "present_mask",
     "split_observation",
     "tracking_index_feature",
-    "trajectory_to_set",
 ]

@@ -55,7 +55,6 @@ from xrl_jax.extractors import (
     positional_encoding,
     present_mask,
     tracking_index_feature,
-    trajectory_to_set,
 )
 
 Array = jax.Array
@@ -206,5 +205,4 @@ __all__ = [
     "positional_encoding",
     "present_mask",
     "tracking_index_feature",
-    "trajectory_to_set",
 ]
