@@ -117,7 +117,7 @@ def _expected_rows(cfg: TrainConfig, next_chunk: int) -> tuple[list[int], list[i
     return ends, evals
 
 
-class _RunClock:
+class RunClock:
     """Wall-time bookkeeping of the host loop: time-based checkpoints and the run's cost estimate."""
 
     def __init__(self, cfg: TrainConfig, num_groups: int):
@@ -173,7 +173,7 @@ class _RunClock:
         return cost(next_chunk) + (self.num_groups - group_index - 1) * cost(0)
 
 
-def _cost_lines(cfg: TrainConfig, elapsed_s: float, remaining_s: float, backend: str) -> list[str]:
+def cost_lines(cfg: TrainConfig, elapsed_s: float, remaining_s: float, backend: str) -> list[str]:
     """The estimate of the whole run's time, with a warning and the alternatives beyond a day."""
     total = elapsed_s + remaining_s
     steps = cfg.num_seeds * cfg.total_steps
@@ -271,7 +271,7 @@ class _HostLoop:
         self.chunks_left = stop_after_chunks
         self.plan = self._plan(resume)
         self.groups = self.plan["groups"]
-        self.clock = _RunClock(self.cfg, len(self.groups))
+        self.clock = RunClock(self.cfg, len(self.groups))
         self.done_steps = 0
         try:
             for group_index, seeds in enumerate(self.groups):
@@ -423,7 +423,7 @@ class _HostLoop:
             clock.estimated = True
             remaining = clock.remaining_s(group_index, chunk_index + 1)
             so_far = time.perf_counter() - self.start_time
-            estimate, *warnings = _cost_lines(cfg, so_far, remaining, self.backend)
+            estimate, *warnings = cost_lines(cfg, so_far, remaining, self.backend)
             self._above_bar(self.log, estimate)
             for line in warnings:
                 self._above_bar(self.warn, line)
