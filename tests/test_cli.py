@@ -252,9 +252,8 @@ def test_a_diverging_run_stops_naming_seed_step_and_quantity(run, capsys, tmp_pa
     assert not (out / "summary.json").exists()
     first, second = read_lines(out / "metrics" / "seed_0.jsonl")
     assert first["train/loss_critic"] is None  # warm-up: no update yet, so no data
-    assert "nan" in {second[k] for k in second if k.startswith("train/")} | {
-        v for v in second.values() if isinstance(v, str)
-    } or "inf" in second.values()
+    written = {value for value in second.values() if isinstance(value, str)}  # non-finite, as text
+    assert "nan" in written or "inf" in written
 
 
 def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_not_in_the_way(run, smoke_run, capsys, tmp_path):

@@ -72,7 +72,6 @@ class Checkpointer:
             max_to_keep=int(max_to_keep), create=True, enable_async_checkpointing=False
         )
         self._manager = ocp.CheckpointManager(self.directory, options=options)
-        self.verified = False  # whether the last restore checked its files against a manifest
 
     def save(self, step: int, state: Any, metadata: dict) -> None:
         """Write ``state`` and the JSON-serialisable ``metadata`` as checkpoint ``step`` (an int),
@@ -128,7 +127,10 @@ class Checkpointer:
         step = self.latest_step() if step is None else int(step)
         if step is None:
             raise FileNotFoundError(f"no checkpoint in {self.directory}")
-        self.verified = self.verify_files(step)
+        self.verify_files(step)
+        return self._read(abstract_state, step)
+
+    def _read(self, abstract_state: Any, step: int) -> tuple[Any, dict]:
         target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state)
         args = ocp.args.Composite(state=ocp.args.StandardRestore(target), meta=ocp.args.JsonRestore())
         try:
@@ -169,10 +171,10 @@ class Checkpointer:
         reasons = []
         for position, step in enumerate(steps):
             try:
-                state, meta = self.restore(abstract_state, step)
-                if not self.verified:
+                if not self.verify_files(step):
                     log(f"checkpoint {self.directory.name}/{step} has no file digests (written by an older "
                         "version or cut short after its commit): restored unverified")  # fmt: skip
+                state, meta = self._read(abstract_state, step)
                 problem = check(state, meta) if check is not None else None
                 if problem:
                     raise CorruptCheckpointError(problem)

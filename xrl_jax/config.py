@@ -52,9 +52,7 @@ def _field(default: Any, help: str, **kwargs: Any) -> Any:
     return dataclasses.field(default=default, metadata={"help": help}, **kwargs)
 
 
-# ------------------------------------------------------------------------------------------------
-# The agent
-# ------------------------------------------------------------------------------------------------
+# ---- The agent ---------------------------------------------------------------------------------
 
 
 @dataclasses.dataclass(frozen=True)
@@ -222,9 +220,7 @@ def _validate_agent(cfg: AgentConfig) -> None:
     check(low < cfg.log_std_max, f"log_std_min ({low}) must be below log_std_max ({cfg.log_std_max})")
 
 
-# ------------------------------------------------------------------------------------------------
-# The run
-# ------------------------------------------------------------------------------------------------
+# ---- The run -----------------------------------------------------------------------------------
 
 
 @dataclasses.dataclass(frozen=True)
@@ -291,6 +287,12 @@ class TrainConfig:
     def chunk_end_step(self, chunk: int) -> int:
         """Transitions per seed collected after chunk index ``chunk`` (0-based)."""
         return min((chunk + 1) * self.log_interval, self.total_steps)
+
+    def evaluates_at(self, step: int) -> bool:  # every eval_interval steps, and at the end
+        return step % self.eval_interval == 0 or step == self.total_steps
+
+    def checkpoints_at(self, step: int) -> bool:  # by steps; time-based checkpoints come on top
+        return step % self.checkpoint_interval == 0 or step == self.total_steps
 
     def replace(self, **changes: Any) -> TrainConfig:
         return dataclasses.replace(self, **changes)
@@ -360,9 +362,7 @@ def _validate_train(cfg: TrainConfig) -> None:
         )
 
 
-# ------------------------------------------------------------------------------------------------
-# Presets: agent hyper-parameters per (env, algo), train-loop settings per (preset, scenario)
-# ------------------------------------------------------------------------------------------------
+# ---- Presets: agent hyper-parameters per (env, algo), train-loop settings per (preset, scenario) ----
 
 INTERSECTION_ALPHA = 0.015  # fixed entropy coefficient of all four intersection agents (§8.7 there)
 
@@ -466,9 +466,7 @@ def preset_train_fields(name: str, env: str) -> dict[str, Any]:
     return dict(TRAIN_PRESETS[(name, "intersection" if env == "intersection" else "racing")])
 
 
-# ------------------------------------------------------------------------------------------------
-# Text overrides (``--set KEY=VALUE``) and the resolved run
-# ------------------------------------------------------------------------------------------------
+# ---- Text overrides (``--set KEY=VALUE``) and the resolved run ---------------------------------
 
 
 def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, str]:

@@ -113,7 +113,7 @@ def divergence_message(
 def _expected_rows(cfg: TrainConfig, next_chunk: int) -> tuple[list[int], list[int]]:
     """The metric and evaluation steps a seed's files must hold when ``next_chunk`` chunks are done."""
     ends = [cfg.chunk_end_step(c) for c in range(next_chunk)]
-    evals = [s for s in ends if s % cfg.eval_interval == 0 or s == cfg.total_steps]
+    evals = [s for s in ends if cfg.evaluates_at(s)]
     return ends, evals
 
 
@@ -166,8 +166,8 @@ class RunClock:
 
         def cost(first_chunk: int) -> float:  # chunks first_chunk.. of one group, with their events
             ends = [cfg.chunk_end_step(c) for c in range(first_chunk, cfg.num_chunks)]
-            evals = sum(1 for s in ends if s % cfg.eval_interval == 0 or s == cfg.total_steps)
-            saves = sum(1 for s in ends if s % cfg.checkpoint_interval == 0 or s == cfg.total_steps)
+            evals = sum(map(cfg.evaluates_at, ends))
+            saves = sum(map(cfg.checkpoints_at, ends))
             return len(ends) * self.chunk_s + evals * (self.eval_s or 0.0) + saves * (self.save_s or 0.0)
 
         return cost(next_chunk) + (self.num_groups - group_index - 1) * cost(0)
@@ -400,13 +400,9 @@ class _HostLoop:
                 f"{diverged}; stopped, and {kept} (resuming would diverge again: start a new run with "
                 "other settings, e.g. lower actor_lr and critic_lr)"
             )
-        if step % cfg.eval_interval == 0 or step == cfg.total_steps:
+        if cfg.evaluates_at(step):
             state = self._evaluate(state, seeds, step)
-        due = step % cfg.checkpoint_interval == 0 or step == cfg.total_steps or clock.checkpoint_due_by_time()
-        if due or (stop is not None and stop.requested is not None):
-            self._save(ckpt, state, seeds, chunk_index, step, group_index)
-        if stop is not None and stop.requested is not None and self.saved_step != step:
-            # the signal arrived during the evaluation or the save
+        if cfg.checkpoints_at(step) or clock.checkpoint_due_by_time():
             self._save(ckpt, state, seeds, chunk_index, step, group_index)
         self.done_steps += collected
         if self.bar is not None:
@@ -416,7 +412,9 @@ class _HostLoop:
             self.bar.set_postfix_str(f"group {group_index + 1}/{len(self.groups)}{shown}", refresh=False)
             self.bar.update(collected)
         append_lines(paths["timing"], [{"group": group_index, "step": step, "seconds": elapsed}])
-        if stop is not None and stop.requested is not None:
+        if stop is not None and stop.requested is not None:  # asked during this chunk or after it
+            if self.saved_step != step:
+                self._save(ckpt, state, seeds, chunk_index, step, group_index)
             raise RunInterrupted(stop.requested, self._kept(self.saved_step, group_index))
         clock.observe_chunk(chunk_index, elapsed)
         if not clock.estimated and clock.chunk_s is not None:
