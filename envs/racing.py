@@ -288,40 +288,47 @@ class RacingEnv(Environment):
         return params.replace(start_s=s, reset_obs=obs, reset_cache_for=self._config())
 
     def reset_env(self, key: jax.Array, params: RacingParams):
-        dtype = default_float()
         if params.track_source == "generate":
             track = generate_track(key)
             tables = ring_tables(track)
-            index = jnp.zeros((), jnp.int32)
-            carried = (track, tables)
             obs, s = self._start(params, track, tables)
-        elif params.track_source == "bank":
+            return obs, self._initial_state(track, jnp.zeros((), jnp.int32), s, (track, tables))
+        if params.track_source == "bank":
             if params.tracks is None:
                 raise ValueError("track_source='bank' needs params.tracks (a bank of at least one track)")
             index = jax.random.randint(key, (), 0, params.bank_size, dtype=jnp.int32)
-            pick = lambda leaf: leaf[index]
-            carried = (None, None)
-            cached = params.reset_obs is not None and params.reset_cache_for == self._config()
-            if cached:
-                track = params.tracks.replace(
-                    start_xy=pick(params.tracks.start_xy),
-                    start_theta=pick(params.tracks.start_theta),
-                    cone_present=pick(params.tracks.cone_present),
-                )
-                obs = {
-                    "state": pick(params.reset_obs["state"]),
-                    self.sensor_key: pick(params.reset_obs[self.sensor_key]),
-                }
-                s = pick(params.start_s)
-            else:
-                track = jax.tree.map(pick, params.tracks)
-                tables = ring_tables(track) if params.tables is None else jax.tree.map(pick, params.tables)
-                obs, s = self._start(params, track, tables)
+            return self.reset_on_track(params, index)
+        raise ValueError(f"track_source must be 'bank' or 'generate', got {params.track_source!r}")
+
+    def reset_on_track(self, params: RacingParams, index: jax.Array):
+        """Start an episode on bank track ``index`` (deterministic: a reset draws nothing else).
+
+        ``reset_env`` draws the index uniformly; a caller that assigns tracks itself (the fresh-track
+        feed of :mod:`envs.track_feed`) calls this directly."""
+        index = jnp.asarray(index, jnp.int32)
+        pick = lambda leaf: leaf[index]
+        if params.reset_obs is not None and params.reset_cache_for == self._config():
+            track = params.tracks.replace(
+                start_xy=pick(params.tracks.start_xy),
+                start_theta=pick(params.tracks.start_theta),
+                cone_present=pick(params.tracks.cone_present),
+            )
+            obs = {
+                "state": pick(params.reset_obs["state"]),
+                self.sensor_key: pick(params.reset_obs[self.sensor_key]),
+            }
+            s = pick(params.start_s)
         else:
-            raise ValueError(f"track_source must be 'bank' or 'generate', got {params.track_source!r}")
+            track = jax.tree.map(pick, params.tracks)
+            tables = ring_tables(track) if params.tables is None else jax.tree.map(pick, params.tables)
+            obs, s = self._start(params, track, tables)
+        return obs, self._initial_state(track, index, s, (None, None))
+
+    def _initial_state(self, track: Track, index, s, carried) -> RacingState:
+        dtype = default_float()
         start = jnp.asarray(track.start_xy, dtype)
         zero = jnp.zeros((), dtype)
-        state = RacingState(
+        return RacingState(
             vehicle=VehicleState.at_pose(start[0], start[1], track.start_theta),
             track_index=index,
             track=carried[0],
@@ -335,7 +342,6 @@ class RacingEnv(Environment):
             velocity_sum=zero,
             cones_hit=jnp.zeros((), jnp.int32),
         )
-        return obs, state
 
     def step_env(self, key: jax.Array, state: RacingState, action: Any, params: RacingParams):
         del key  # the racing dynamics are deterministic

@@ -464,16 +464,22 @@ def generate_track(key: jax.Array) -> Track:
     return _generate(key)[0]
 
 
+def generation_batch_size() -> int:
+    """Tracks generated at once: 1 on CPU, where the generator's data-dependent loops run fastest a
+    track at a time, and 64 on an accelerator. Memory per track in flight is a few MB (760 x 760
+    simplicity tables)."""
+    return 1 if jax.default_backend() == "cpu" else 64
+
+
 def make_track_bank(key: jax.Array, size: int, batch_size: int | None = None) -> Track:
     """`size` independent tracks stacked on a leading axis (a bank, drawn from at every reset).
 
-    Tracks are generated `batch_size` at a time (vmapped inside `lax.map`). The default is 1 on
-    CPU, where the generator's data-dependent loops run fastest one track at a time, and 64 on an
-    accelerator. Memory per track in flight is a few MB (760 x 760 simplicity tables)."""
+    Tracks are generated `batch_size` at a time (vmapped inside `lax.map`), by default
+    :func:`generation_batch_size`."""
     if int(size) < 1:
         raise ValueError(f"size must be a positive integer, got {size}")
     if batch_size is None:
-        batch_size = 1 if jax.default_backend() == "cpu" else 64
+        batch_size = generation_batch_size()
     if int(batch_size) < 1:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size}")
     return _make_bank(key, int(size), min(int(batch_size), int(size)))
