@@ -184,12 +184,19 @@ def test_object_inputs_reshaper_and_neutral_object(small_obs):
     np.testing.assert_array_equal(inputs[..., :5], small_obs["cones_set"])
     np.testing.assert_array_equal(inputs[..., 2, 5:], small_obs["state"])
     np.testing.assert_array_equal(present[0, 0], [True] * 4 + [False] * 3)
-    inputs, present = N.object_inputs(small_obs, neutral_object=True)
-    assert inputs.shape == (*BATCH, 8, 11) and bool(jnp.all(present[..., 0]))
-    np.testing.assert_array_equal(
-        inputs[..., 0, :5], jnp.broadcast_to(jnp.array([1.0, 0, 0, 0, 0]), (*BATCH, 5))
-    )
-    np.testing.assert_array_equal(inputs[..., 0, 5:], small_obs["state"])
+    # The neutral row (docs/algorithms.md §4.1): as in the original all zero, present column included,
+    # while the mask counts it present; with neutral_flag its present column is 1. The other rows and
+    # their mask are unchanged behind it.
+    for flag, first_column in ((False, 0.0), (True, 1.0)):
+        inputs, present = N.object_inputs(small_obs, neutral_object=True, neutral_flag=flag)
+        assert inputs.shape == (*BATCH, 8, 11)
+        np.testing.assert_array_equal(
+            inputs[..., 0, :5], jnp.broadcast_to(jnp.array([first_column, 0, 0, 0, 0]), (*BATCH, 5))
+        )
+        np.testing.assert_array_equal(inputs[..., 0, 5:], small_obs["state"])
+        np.testing.assert_array_equal(inputs[..., 1:, :5], small_obs["cones_set"])
+        np.testing.assert_array_equal(present[0, 0], [True] + [True] * 4 + [False] * 3)
+        assert bool(jnp.all(present[..., 0]))
 
 
 def test_bad_inputs_raise_clear_errors(small_obs):

@@ -156,6 +156,7 @@ class MixtureGaussianActor(nn.Module):
     log_std_max: float = LOG_STD_MAX
     set_key: str | None = None
     neutral_object: bool = False
+    neutral_flag: bool = False
     uniform_mixture: bool = False
 
     def setup(self):
@@ -172,7 +173,7 @@ class MixtureGaussianActor(nn.Module):
 
     def __call__(self, obs: Observation) -> GaussianMixtureOutput:
         """Full path: every object's component parameters and mixture logit."""
-        inputs, present = object_inputs(obs, self.set_key, self.neutral_object)
+        inputs, present = object_inputs(obs, self.set_key, self.neutral_object, self.neutral_flag)
         h, mixture_logits = self.trunk(inputs)
         means, log_stds = self._heads(h)
         return GaussianMixtureOutput(means, log_stds, mixture_logits, present)
@@ -183,7 +184,7 @@ class MixtureGaussianActor(nn.Module):
         Layers 1..φ_d and φ run for all O objects (the logits need them); layers φ_d+1..depth and the
         μ / log σ heads run once per sample. Distributionally identical to full-mixture sampling.
         """
-        inputs, present = object_inputs(obs, self.set_key, self.neutral_object)
+        inputs, present = object_inputs(obs, self.set_key, self.neutral_object, self.neutral_flag)
         key_object, key_component, key_noise = jax.random.split(key, 3)
         h, logits, object_index = self.trunk.sample_object(inputs, present, key_object)
         means, log_stds = self._heads(h)
@@ -209,6 +210,7 @@ class MixtureCategoricalActor(nn.Module):
     weight_depth: int | None = None
     set_key: str | None = None
     neutral_object: bool = False
+    neutral_flag: bool = False
     uniform_mixture: bool = False
 
     def setup(self):
@@ -219,13 +221,13 @@ class MixtureCategoricalActor(nn.Module):
         self.logit_head = nn.Dense(self.num_actions, name="logits")
 
     def __call__(self, obs: Observation) -> CategoricalMixtureOutput:
-        inputs, present = object_inputs(obs, self.set_key, self.neutral_object)
+        inputs, present = object_inputs(obs, self.set_key, self.neutral_object, self.neutral_flag)
         h, mixture_logits = self.trunk(inputs)
         return CategoricalMixtureOutput(centre(self.logit_head(h)), mixture_logits, present)
 
     def sample_fast(self, obs: Observation, key: Array) -> FastSample:
         """Ancestral sampling (paper eq. after (3)): object from the weights, action from its head only."""
-        inputs, present = object_inputs(obs, self.set_key, self.neutral_object)
+        inputs, present = object_inputs(obs, self.set_key, self.neutral_object, self.neutral_flag)
         key_object, key_action = jax.random.split(key)
         h, logits, object_index = self.trunk.sample_object(inputs, present, key_object)
         action_logits = centre(self.logit_head(h))

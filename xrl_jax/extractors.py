@@ -66,24 +66,28 @@ def present_mask(objects: Array) -> Array:
 
 
 def object_inputs(
-    obs: Observation, set_key: str | None = None, neutral_object: bool = False
+    obs: Observation, set_key: str | None = None, neutral_object: bool = False, neutral_flag: bool = False
 ) -> tuple[Array, Array]:
     """The X-actor observation reshaper (§4.1): per-object rows ``[x_o, z]`` and the present mask.
 
     The object row keeps its present flag (and, for tracking, the index column); the state ``z`` is
-    broadcast to every slot. ``neutral_object`` prepends a present, all-zero object (multi-agent only),
-    whose component therefore sees only the state.
+    broadcast to every slot. ``neutral_object`` prepends a neutral object (multi-agent only), whose
+    component therefore sees only the state. As in the original its row is all zero, present column
+    included, while the mask counts it as present (docs/algorithms.md §4.1);
+    ``neutral_flag`` writes 1 into that column instead.
 
     Returns ``(inputs (..., O[+1], F_obj + S), present (..., O[+1]) bool)``.
     """
     _, objects, state = split_observation(obs, set_key)
     dtype = jnp.result_type(objects, state)
     objects, state = objects.astype(dtype), state.astype(dtype)
+    present = present_mask(objects)
     if neutral_object:
-        neutral = jnp.zeros((*objects.shape[:-2], 1, objects.shape[-1]), dtype).at[..., 0].set(1.0)
-        objects = jnp.concatenate([neutral, objects], axis=-2)
+        neutral = jnp.zeros((*objects.shape[:-2], 1, objects.shape[-1]), dtype)
+        objects = jnp.concatenate([neutral.at[..., 0].set(float(neutral_flag)), objects], axis=-2)
+        present = jnp.concatenate([jnp.ones((*present.shape[:-1], 1), bool), present], axis=-1)
     tiled_state = jnp.broadcast_to(state[..., None, :], objects.shape[:-1] + state.shape[-1:])
-    return jnp.concatenate([objects, tiled_state], axis=-1), present_mask(objects)
+    return jnp.concatenate([objects, tiled_state], axis=-1), present
 
 
 def tracking_index_feature(length: int) -> Array:

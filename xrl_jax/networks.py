@@ -151,6 +151,7 @@ def make_networks(config: AgentConfig, obs_shape: ObservationShape, action_size:
         weight_depth=c.weight_depth,
         set_key=obs_shape.set_key,
         neutral_object=c.neutral_object,
+        neutral_flag=c.neutral_flag,
         uniform_mixture=c.uniform_mixture,
     )
     if c.algo == "sac":
