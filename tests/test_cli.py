@@ -104,8 +104,13 @@ def test_same_seed_gives_identical_metrics_and_other_seeds_differ(run, smoke_run
     assert files_of(other, "metrics")["seed_0.jsonl"] != first["seed_0.jsonl"]
 
 
-def test_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, capsys, monkeypatch):
-    args = [*SMOKE, "--steps", "256", "--set", "checkpoint_interval=128"]
+FRESH_TRACKS = ["--set", "train_tracks=0", "--set", "track_feed_size=8"]
+
+
+@pytest.mark.parametrize("tracks", [["--set", "train_tracks=3"], FRESH_TRACKS], ids=["bank", "fresh"])
+def test_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, capsys, monkeypatch, tracks):
+    """For a fixed bank and for fresh tracks (the feed is part of the checkpointed run state)."""
+    args = [*SMOKE, "--steps", "256", "--set", "checkpoint_interval=128", *tracks]
     full, split = tmp_path / "full", tmp_path / "split"
     assert call(run, capsys, *args, "--out", str(full))[0] == 0
     # Stop after 3 of 4 chunks: the checkpoint is at step 128, metrics exist up to 192.

@@ -101,6 +101,7 @@ def test_smoke_preset_is_tiny_with_paper_optimisation():
         ({"algo": "sac", "neutral_object": True}, "neutral_object only applies"),
         ({"algo": "dsac", "neutral_object": True}, "neutral_object only applies"),
         ({"algo": "xsac", "neutral_object": 1}, "neutral_object must be a bool"),
+        ({"algo": "xsac", "neutral_flag": True}, "neutral_flag needs neutral_object"),
         ({"fe_item_depth": 0}, "fe_item_depth must be a positive integer"),
         ({"fe_set_depth": 0}, "fe_set_depth must be a positive integer"),
         ({"lr_decay_updates": -1}, "lr_decay_updates must be a non-negative integer"),

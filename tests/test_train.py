@@ -186,6 +186,48 @@ def test_warmup_then_one_update_per_transition(smoke_trainer):
     assert not np.array_equal(np.asarray(keys), np.asarray(state.eval_key))  # a fresh eval stream
 
 
+def test_fresh_tracks_give_every_episode_a_new_track_from_the_seeds_own_stream(tmp_path):
+    """``train_tracks=0`` (the default): each seed's envs take new tracks from the seed's own stream
+    (envs/track_feed.py), the metrics count them (distinct tracks = every env's first episode plus
+    every finished one, none reused), and refills between chunks keep the feed's memory fixed.
+    Episodes are cut to 8 steps so that 4 chunks (8 episodes each per seed) need refills of a
+    16-track feed."""
+    from envs.track_generator import generate_track
+    from xrl_jax.train.tracks import make_envs
+
+    prepare_cache(tmp_path)
+    cfg = resolve_config(
+        "tracking", "xdsac", "smoke", num_seeds=2, total_steps=256,
+        overrides={"train_tracks": "0", "track_feed_size": "16", "track_seed": "7"},
+    )  # fmt: skip
+    env, params, eval_params = make_envs(cfg)
+    trainer = T.make_train(cfg, (env, params.replace(max_steps=8), eval_params))
+    state = trainer.init(jnp.int32(3), jnp.arange(2, dtype=jnp.int32))
+    capacity = state.feed.slot_number.shape
+    for chunk in range(cfg.num_chunks):
+        state, report = trainer.chunk(state, jnp.int32(chunk * cfg.chunk_vector_steps))
+    used = np.asarray(report.metrics["rollout/tracks_used"])
+    finished = np.asarray(report.metrics["rollout/episodes"])
+    assert (finished >= 28).all()  # 4 envs x 64 steps / 8 steps = 32 (more if a car leaves the track)
+    np.testing.assert_array_equal(used, cfg.num_envs + finished)
+    np.testing.assert_array_equal(np.asarray(report.metrics["rollout/tracks_reused"]), [0, 0])
+    feed = state.feed
+    assert feed.slot_number.shape == capacity == (2, 16)
+    assert (np.asarray(feed.generated) >= used).all()
+    for row in np.asarray(feed.slot_number):  # the feed holds distinct, recent track numbers
+        assert len(set(row.tolist())) == 16
+    # Seed i's stream: track n = generate_track(fold_in(fold_in(fold_in(PRNGKey(track_seed), base
+    # seed), i), n)); two seeds never share it. Length tolerance as in tests/test_track_feed.py.
+    stream = jax.random.fold_in(jax.random.PRNGKey(7), 3)
+    for seed in (0, 1):
+        newest = int(np.argmax(np.asarray(feed.slot_number[seed])))
+        number = int(feed.slot_number[seed, newest])
+        expected = jax.jit(generate_track)(jax.random.fold_in(jax.random.fold_in(stream, seed), number))
+        length = float(feed.params.tracks.length[seed, newest])
+        np.testing.assert_allclose(length, float(expected.length), atol=0.2)
+    assert abs(float(feed.params.tracks.length[0, 0]) - float(feed.params.tracks.length[1, 0])) > 1.0
+
+
 # ---------------------------------------------------------------------------------------------
 # Learning (slow): the quick preset must improve the evaluation return on Tracking
 # ---------------------------------------------------------------------------------------------

@@ -77,6 +77,7 @@ class AgentConfig:
     neutral_object: bool = _field(
         False, "X agents: an always-present all-zero object (a state-only component, Appendix A)"
     )
+    neutral_flag: bool = _field(False, "the neutral row's present column: 0 as the original, or 1 (true)")
     weight_depth: int | None = _field(None, "φ_d: hidden layer feeding the mixture weights; none = last")
     uniform_mixture: bool = _field(False, "ablation §3.1.6: uniform weights over present objects")
     log_std_min: float | None = _field(None, "lower log σ bound; none = SAC −20, XSAC −5 (§7.1)")
@@ -187,7 +188,7 @@ def _validate_agent(cfg: AgentConfig) -> None:
             _is_int(getattr(cfg, name), 0),
             f"{name} must be a non-negative integer, got {getattr(cfg, name)!r}",
         )
-    for name in ("duelling", "neutral_object", "uniform_mixture", "auto_alpha"):
+    for name in ("duelling", "neutral_object", "neutral_flag", "uniform_mixture", "auto_alpha"):
         check(isinstance(getattr(cfg, name), bool), f"{name} must be a bool, got {getattr(cfg, name)!r}")
     if cfg.weight_depth is not None:
         check(
@@ -198,6 +199,7 @@ def _validate_agent(cfg: AgentConfig) -> None:
         not cfg.neutral_object or cfg.is_mixture,
         f"neutral_object only applies to the mixture actors (xsac, xdsac); {cfg.algo} has no object slots",
     )
+    check(not cfg.neutral_flag or cfg.neutral_object, "neutral_flag needs neutral_object")
     check(
         cfg.algo != "xdsac" or cfg.duelling,
         "XDSAC always uses a duelling critic (docs/algorithms.md §2.4); duelling=False is only for DSAC",
@@ -246,9 +248,12 @@ class TrainConfig:
     eval_interval: int = _field(100_000, "steps between evaluations (a multiple of log_interval)")
     eval_episodes: int = _field(100, "evaluation episodes (fixed tracks)")
     checkpoint_interval: int = _field(100_000, "steps between checkpoints (a multiple of log_interval)")
-    train_tracks: int = _field(256, "size of the training track bank (envs draw from it at every reset)")
-    track_seed: int = _field(0, "seed of the training bank")
-    eval_track_seed: int = _field(1, "seed of the evaluation tracks, disjoint from the training bank")
+    train_tracks: int = _field(
+        0, "0 = a fresh track for every training episode, as the original; N = a fixed bank of N tracks"
+    )
+    track_feed_size: int = _field(128, "fresh tracks generated ahead per seed (about 53 KB each)")
+    track_seed: int = _field(0, "seed of the training tracks (a fixed bank, or each seed's fresh stream)")
+    eval_track_seed: int = _field(1, "seed of the evaluation tracks, disjoint from the training tracks")
     reinit_steps: int = _field(0, "re-initialise the agent (not the buffer) every this many steps; 0 = never")
     max_group_size: int = _field(0, "seeds per group at most; 0 = as many as the memory budget allows")
     memory_budget_gb: float = _field(0.0, "0 = 90 % of the device memory (host RAM within any cgroup limit)")
@@ -266,6 +271,10 @@ class TrainConfig:
     @property
     def multi_agent(self) -> bool:
         return self.env in MULTI_AGENT_ENVS
+
+    @property
+    def fresh_tracks(self) -> bool:  # racing trains on fresh tracks unless a fixed bank is asked for
+        return self.train_tracks == 0 and not self.multi_agent
 
     @property
     def buffer_layout(self) -> str:
@@ -324,12 +333,12 @@ def _validate_train(cfg: TrainConfig) -> None:
     _require(cfg.agent.algo == cfg.algo, f"agent.algo ({cfg.agent.algo}) differs from algo ({cfg.algo})")
     for name in (
         "num_seeds", "total_steps", "num_envs", "batch_size", "buffer_size", "log_interval",
-        "eval_interval", "eval_episodes", "checkpoint_interval", "train_tracks", "warmup_steps"
+        "eval_interval", "eval_episodes", "checkpoint_interval", "track_feed_size", "warmup_steps"
     ):
         _require(
             _is_int(getattr(cfg, name), 1), f"{name} must be a positive integer, got {getattr(cfg, name)!r}"
         )
-    for name in ("seed", "track_seed", "eval_track_seed", "max_group_size", "reinit_steps"):
+    for name in ("seed", "train_tracks", "track_seed", "eval_track_seed", "max_group_size", "reinit_steps"):
         value = getattr(cfg, name)
         _require(_is_int(value, 0), f"{name} must be a non-negative integer, got {value!r}")
     _require(
@@ -351,6 +360,11 @@ def _validate_train(cfg: TrainConfig) -> None:
             f"{name} ({getattr(cfg, name)}) must be a multiple of log_interval ({cfg.log_interval})",
         )
     _require(cfg.warmup_steps >= e, f"warmup_steps ({cfg.warmup_steps}) must be at least num_envs ({e})")
+    _require(
+        cfg.track_feed_size >= 2 * e,
+        f"track_feed_size ({cfg.track_feed_size}) must be at least 2 x num_envs ({2 * e}): every env "
+        "starts on a fresh track and half the feed is refilled at a time",
+    )
     _require(
         cfg.buffer_size >= cfg.batch_size,
         f"buffer_size ({cfg.buffer_size}) must be at least batch_size ({cfg.batch_size})",
@@ -391,7 +405,7 @@ TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
     ("paper", "racing"): {},
     ("quick", "racing"): dict(
         total_steps=80_000, batch_size=128, log_interval=1_000, eval_interval=5_000,
-        checkpoint_interval=10_000, warmup_steps=1_000, train_tracks=64),
+        checkpoint_interval=10_000, warmup_steps=1_000),
     ("smoke", "racing"): dict(
         total_steps=192, num_envs=4, warmup_steps=64, batch_size=16, buffer_size=256, log_interval=64,
         eval_interval=192, checkpoint_interval=64, eval_episodes=3, train_tracks=3),

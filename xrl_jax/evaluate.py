@@ -241,7 +241,7 @@ def _aggregate(scores: np.ndarray) -> dict[str, Any]:
     return {**interval.as_dict(), "mean": float(scores.mean()), "n": int(scores.size)}
 
 
-def _aggregate_metrics(rows: list[dict], env: str) -> dict[str, Any]:
+def aggregate_metrics(rows: list[dict], env: str) -> dict[str, Any]:
     """:func:`_aggregate` of every summary metric over ``rows`` (one per seed); non-finite ones skipped."""
     result = {}
     for key, _ in summary_metrics(env):
@@ -262,7 +262,7 @@ def _curve(evaluations: list[dict[int, dict]], env: str) -> list[dict[str, Any]]
     curve = []
     for step in steps:
         rows = [by_step[step] for by_step in evaluations]
-        point = {"step": step, **_aggregate_metrics(rows, env)}
+        point = {"step": step, **aggregate_metrics(rows, env)}
         for key in point:
             if key != "step":
                 point[key]["per_seed"] = [float(row[key]) for row in rows]
@@ -286,10 +286,44 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
         "per_seed": {
             str(s): {k: v for k, v in r.items() if k != "episode_returns"} for s, r in finals.items()
         },
-        "aggregate": _aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
+        "aggregate": aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
         "curve": _curve(evaluations, cfg.env),
     }
+    if not cfg.multi_agent:
+        summary["training_tracks"] = _training_tracks(out, cfg)
     return summary
+
+
+def _training_tracks(out: Path, cfg) -> dict[str, Any]:
+    """What the seeds trained on: a fixed bank, or fresh tracks with each seed's count of distinct
+    tracks driven and of resets that found its feed empty (from its last metrics line)."""
+    if not cfg.fresh_tracks:
+        return {"fresh": False, "bank": cfg.train_tracks}
+    used, reused = {}, {}
+    for seed in range(cfg.num_seeds):
+        rows = [r for r in read_jsonl(out / "metrics" / f"seed_{seed}.jsonl") if "rollout/tracks_used" in r]
+        if rows:
+            used[str(seed)] = int(rows[-1]["rollout/tracks_used"])
+            reused[str(seed)] = int(rows[-1]["rollout/tracks_reused"])
+    return {"fresh": True, "distinct_per_seed": used, "reused_per_seed": reused}
+
+
+def format_training_tracks(summary: dict[str, Any]) -> str | None:
+    """One line on the training tracks (None for intersection runs and older summaries)."""
+    tracks = summary.get("training_tracks")
+    if tracks is None:
+        return None
+    if not tracks["fresh"]:
+        return f"training tracks: a fixed bank of {tracks['bank']}"
+    used = list(tracks["distinct_per_seed"].values())
+    if not used:
+        return "training tracks: fresh (no metrics yet)"
+    reused = sum(tracks["reused_per_seed"].values())
+    spread = f" (min {min(used):,}, max {max(used):,})" if len(used) > 1 else ""
+    return (
+        f"training tracks: fresh, {sum(used) / len(used):,.0f} distinct per seed{spread}; "
+        f"{reused:,} resets reused a track"
+    )
 
 
 def format_table(summary: dict[str, Any]) -> str:
@@ -304,6 +338,9 @@ def format_table(summary: dict[str, Any]) -> str:
         lines.append(f"{label:<26} {agg['estimate']:>10.3f} {ci:>22} {agg['mean']:>10.3f} {agg['n']:>6d}")
     if not summary["aggregate"]:
         lines.append("(no final evaluation yet)")
+    tracks = format_training_tracks(summary)
+    if tracks:
+        lines.append(tracks)
     return "\n".join(lines)
 
 

@@ -55,6 +55,7 @@ class RunState:
     episode_return: jax.Array  # (E,) running return of the current episodes
     episode_length: jax.Array  # (E,)
     window: EpisodeWindow
+    feed: Any = None  # racing on fresh tracks: this seed's envs.track_feed.TrackFeed
 
 
 
@@ -141,13 +142,16 @@ def get_trainer(cfg: TrainConfig) -> Trainer:
 
 def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer:
     """Build the agent, the vector env and the jitted init / chunk / evaluate functions for ``cfg``."""
+    from envs import track_feed
     from envs.core import vmap_env
     from xrl_jax import evaluate as evaluate_mod
 
     env, params, eval_params = env_and_params if env_and_params is not None else make_envs(cfg)
     num_envs, batch, warmup = cfg.num_envs, cfg.batch_size, cfg.warmup_steps
-    multi = cfg.multi_agent
-    venv = vmap_env(env, num_envs, auto_reset=not multi)  # the multi-agent env restarts itself
+    multi, fresh = cfg.multi_agent, cfg.fresh_tracks
+    # The multi-agent env restarts itself; on fresh tracks the feed assigns each new episode's track.
+    venv = vmap_env(env, num_envs, auto_reset=not (multi or fresh))
+    refill_count = cfg.track_feed_size // 2
     obs_shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0), params)[0]
     if multi:  # observations carry a leading agent-slot axis; the agent sees one agent's view
         slots = int(env.num_agents)
@@ -168,7 +172,14 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
     def init_one(base_seed, index):
         key = jax.random.fold_in(jax.random.PRNGKey(base_seed), index)
         agent_key, env_key, run_key, eval_key = jax.random.split(key, 4)
-        obs, env_state = venv.reset(env_key, params)
+        feed = None
+        if fresh:  # seed i's tracks: a stream of its own, apart from the agent's and the envs' keys
+            run_tracks = jax.random.fold_in(jax.random.PRNGKey(cfg.track_seed), base_seed)
+            feed_key = jax.random.fold_in(run_tracks, index)
+            feed = track_feed.init_feed(env, params, feed_key, cfg.track_feed_size, num_envs)
+            obs, env_state, feed = track_feed.reset_with_feed(env, feed)
+        else:
+            obs, env_state = venv.reset(env_key, params)
         return RunState(
             agent=agent.init(agent_key, obs_example),
             buffer=new_buffer(cfg.buffer_size),
@@ -179,6 +190,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
             episode_return=jnp.zeros(actors, float_dtype),
             episode_length=jnp.zeros(actors, jnp.int32),
             window=window_init(float_dtype),
+            feed=feed,
         )
 
     def sample_and_update(agent_state, buffer, key):
@@ -209,7 +221,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
     def act_and_step(state: RunState, t):
         """The common start of a vector step: (re-initialise,) act (random during warm-up), step the
         envs. Returns the next run key, the update key, the agent state, the action, which envs are
-        still warming up, and the env step's outputs."""
+        still warming up, the env step's outputs and the track feed."""
         key, act_key, random_key, env_key, update_key, reinit_key = jax.random.split(state.key, 6)
         first_transition = t * num_envs
         agent_state = maybe_reinitialise(state.agent, first_transition, reinit_key)
@@ -218,8 +230,11 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         warm_env = first_transition + jnp.arange(num_envs) < warmup
         warm = warm_env.reshape(warm_env.shape + (1,) * (policy_action.ndim - 1))
         action = jnp.where(warm, random_action, policy_action)
+        if fresh:
+            *step, feed = track_feed.step_with_feed(env, env_key, state.env_state, action, state.feed)
+            return key, update_key, agent_state, action, warm_env, tuple(step), feed
         step = venv.step(env_key, state.env_state, action, params)
-        return key, update_key, agent_state, action, warm_env, step
+        return key, update_key, agent_state, action, warm_env, step, state.feed
 
     def episode_bookkeeping(state, reward, counted, done, terminated, velocity):
         """Per-actor running episode return and length (actors: envs, or env × vehicle slot);
@@ -238,7 +253,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         }
 
     def vector_step(state: RunState, t):
-        key, update_key, agent_state, action, _, step = act_and_step(state, t)
+        key, update_key, agent_state, action, _, step, feed = act_and_step(state, t)
         next_obs, env_state, reward, terminated, truncated, info = step
         first_transition = t * num_envs
         buffer = buffer_add(
@@ -262,7 +277,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         )
         done = terminated | truncated
         new_state = state.replace(
-            agent=agent_state, buffer=buffer, env_state=env_state, obs=next_obs, key=key,
+            agent=agent_state, buffer=buffer, env_state=env_state, obs=next_obs, key=key, feed=feed,
             **episode_bookkeeping(state, reward, jnp.ones(done.shape, bool), done, terminated,
                                   info["avg_track_velocity"]),
         )  # fmt: skip
@@ -279,7 +294,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         transition is stored (packed) and, after warm-up, followed by one gradient step
         (docs/carenv-intersection.md §8.5: updates = agent transitions, 0..8 per env step, as an exact
         ``while_loop``)."""
-        key, update_key, agent_state, action, warm_env, step = act_and_step(state, t)
+        key, update_key, agent_state, action, warm_env, step, _ = act_and_step(state, t)
         next_obs, env_state, reward, terminated, truncated, info = step
         acted = info["acted"]
 
@@ -369,6 +384,9 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
             average("rollout/trips_per_episode", jnp.sum(outs["trips"]), episodes)
             average("rollout/early_terminations_per_episode", jnp.sum(outs["early_terminations"]), episodes)
         metrics["buffer/stored_rows"] = state.buffer.filled_rows
+        if fresh:  # distinct tracks driven so far, and resets that found the feed empty
+            metrics["rollout/tracks_used"] = state.feed.issued
+            metrics["rollout/tracks_reused"] = state.feed.reused
         # The first vector step whose update produced a non-finite loss (and which one), and whether
         # the agent's parameters and optimiser states are still finite: the host stops on either.
         bad = jnp.stack([~jnp.isfinite(outs["metrics"][k]) for k in _update_metric_order(outs["metrics"])], 1)
@@ -399,7 +417,20 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         # committedness, so both then share one compiled chunk.
         return jax.device_put(init_jit(base_seed, seed_indices), jax.devices()[0])
 
-    chunk = jax.jit(jax.vmap(chunk_one, in_axes=(0, None)), donate_argnums=0)
+    def refill_feeds(feed):
+        """Generate tracks into every seed's free slots once some seed can take half a feed. The
+        condition is over all seeds (unbatched), so it is a real branch: chunks without a refill
+        generate nothing. Which track an episode gets does not depend on when refills happen
+        (envs/track_feed.py); a track costs ~3 ms on a CPU core."""
+        needed = jnp.any(track_feed.writable(feed, refill_count)[2][..., -1])  # room for all of them
+        return jax.lax.cond(needed, lambda f: track_feed.refill_feed(env, f, refill_count), lambda f: f, feed)
+
+    def chunk_all(state: RunState, start_vector_step):
+        if fresh:
+            state = state.replace(feed=refill_feeds(state.feed))
+        return jax.vmap(chunk_one, in_axes=(0, None))(state, start_vector_step)
+
+    chunk = jax.jit(chunk_all, donate_argnums=0)
     evaluate = jax.jit(jax.vmap(evaluate_seed))
     loss_names = tuple(f"train/{k}" for k in _update_metric_order(metric_shapes))
     return Trainer(cfg, env, params, eval_params, agent, init, chunk, evaluate, loss_names)

@@ -67,8 +67,10 @@ def cached_track_bank(seed: int, size: int):
 
 
 def make_envs(cfg: TrainConfig):
-    """``(env, train_params, eval_params)``: the training bank and the fixed evaluation tracks
-    (Intersection: curriculum for training, 8 vehicles for evaluation, docs/carenv-intersection.md §8.8)."""
+    """``(env, train_params, eval_params)``. Racing: the fixed evaluation tracks, and for training a
+    fixed bank (``train_tracks`` > 0) or, with fresh tracks, params whose one-track bank is only a
+    template for each seed's :class:`envs.track_feed.TrackFeed`. Intersection: curriculum for training,
+    8 vehicles for evaluation (docs/carenv-intersection.md §8.8)."""
     import envs
 
     if cfg.multi_agent:
@@ -76,9 +78,11 @@ def make_envs(cfg: TrainConfig):
         return env, params, params.replace(max_vehicles=8)
     from envs.racing import with_bank
 
-    train_bank = cached_track_bank(cfg.track_seed, cfg.train_tracks)
     eval_bank = cached_track_bank(cfg.eval_track_seed, cfg.eval_episodes)
-    first = jax.tree.map(lambda leaf: leaf[0], train_bank)
-    env, params = envs.make(cfg.env_name, track=first)  # a user track: no generation here
-    attach = jax.jit(with_bank)  # the per-track tables, computed in one compiled call
-    return env, attach(params, train_bank), attach(params, eval_bank)
+    train_bank = eval_bank if cfg.fresh_tracks else cached_track_bank(cfg.track_seed, cfg.train_tracks)
+    first = jax.tree.map(lambda leaf: leaf[:1], train_bank)
+    # A user track: envs.make generates nothing.
+    env, params = envs.make(cfg.env_name, track=jax.tree.map(lambda leaf: leaf[0], first))
+    # Tables and reset cache of every track, each in one compiled call.
+    attach = jax.jit(lambda params, bank: env.prepare(with_bank(params, bank)))
+    return env, attach(params, first if cfg.fresh_tracks else train_bank), attach(params, eval_bank)

@@ -1,0 +1,101 @@
+"""Evaluate a finished run's agents again, on its training tracks or on its held-out tracks.
+
+    python experiments/evaluate.py RESULTS_DIR [--tracks train|eval] [--episodes N] [--key K]
+
+Every seed's agent is restored from the run's newest checkpoint and driven with the run's evaluation
+protocol (docs/algorithms.md §6.1) over the first N tracks of the chosen set, one episode per track:
+``train`` is the fixed training bank of a run with ``train_tracks`` > 0 (the gap to ``eval`` is the
+generalisation gap), ``eval`` the run's held-out evaluation tracks. Prints each seed's average return
+and early-termination rate and their IQM with its 95 % stratified bootstrap CI over seeds, and
+writes the same to ``RESULTS_DIR/evaluation_<tracks>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from explain import OneLineParser, positive_int
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(prog="evaluate.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", help="a results folder of experiments/run.py (racing scenarios)")
+    parser.add_argument(
+        "--tracks", choices=("train", "eval"), default="train", help="which tracks (default: train)"
+    )
+    parser.add_argument(
+        "--episodes", type=positive_int, help="tracks to drive, one episode each (default: all)"
+    )
+    parser.add_argument(
+        "--key", type=int, default=0, help="seed of the evaluation's random numbers (default 0)"
+    )
+    return parser
+
+
+def fail(message: str) -> int:
+    print(f"evaluate.py: error: {message}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    run = Path(args.run)
+    import jax
+
+    from xrl_jax import evaluate as evaluate_mod
+    from xrl_jax.explain import RunError, load_trained_agent
+
+    try:
+        cfg, trainer, _ = load_trained_agent(run, 0)
+    except RunError as err:
+        return fail(str(err))
+    if cfg.multi_agent:
+        return fail(
+            "intersection runs have no tracks; their evaluation episodes are in the run's eval/ files"
+        )
+    if args.tracks == "train" and cfg.fresh_tracks:
+        return fail(
+            f"{run} trained on fresh tracks (train_tracks=0): every training episode had a new track, so its "
+            "held-out evaluation already measures generalisation; use --tracks eval"
+        )
+    params = trainer.env_params if args.tracks == "train" else trainer.eval_params
+    available = int(params.tracks.num_points.shape[0])
+    episodes = available if args.episodes is None else args.episodes
+    if episodes > available:
+        return fail(f"--episodes {episodes}: the run's {args.tracks} tracks are only {available}")
+    evaluate = jax.jit(evaluate_mod.make_evaluate(trainer.env, params, trainer.agent, episodes))
+    per_seed = []
+    for seed in range(cfg.num_seeds):
+        _, _, agent_state = load_trained_agent(run, seed)
+        result = evaluate_mod.summarize_episodes(
+            jax.device_get(evaluate(jax.random.PRNGKey(args.key), agent_state))
+        )
+        per_seed.append({"seed": seed, **result})
+        print(
+            f"seed {seed}: return {result['avg_return']:.2f}, early-termination rate {result['avg_etr']:.2f}"
+        )
+    aggregate = evaluate_mod.aggregate_metrics(per_seed, cfg.env)
+    for key, label in evaluate_mod.summary_metrics(cfg.env):
+        if key in aggregate:
+            agg = aggregate[key]
+            interval = f"[{agg['low']:.3f}, {agg['high']:.3f}]"
+            print(f"{label} on {episodes} {args.tracks} tracks: IQM {agg['estimate']:.3f} {interval}")
+    document = {
+        "tracks": args.tracks,
+        "episodes": episodes,
+        "key": args.key,
+        "aggregate": aggregate,
+        "per_seed": [{k: v for k, v in row.items() if k != "episode_returns"} for row in per_seed],
+    }
+    out = run / f"evaluation_{args.tracks}.json"
+    out.write_text(json.dumps(document, indent=2) + "\n")
+    print(f"written: {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
