@@ -6,6 +6,7 @@
     python experiments/bench.py update   [--algos sac dsac xsac xdsac] [--widths 64 128 256] [--seeds 1 5 20]
     python experiments/bench.py train    [--env tracking] [--algos xsac xdsac] [--seeds 1 5 20]
                                          [--widths 256 64] [--chunks 2] [--set KEY=VALUE ...]
+    python experiments/bench.py tracks   [--seeds 1 4 20] [--count 64]
 
 Numbers are wall-clock rates after compilation (compile time is reported separately), measured with
 ``block_until_ready`` on the default JAX device. Tests never assert timings; these scripts do.
@@ -237,6 +238,41 @@ def bench_train(
     }
 
 
+def bench_tracks(seeds: int, count: int, repeats: int) -> dict:
+    """Fresh-track cost: a refill of ``count`` tracks into each of ``seeds`` feeds (generation, ring
+    tables, reset observations, the slot writes), as the training chunk runs it; and XLA's FLOP count
+    of one track, which counts every loop body once (a lower bound: the generator's pairwise checks
+    loop over ~50 blocks for a typical track)."""
+    import envs
+    from envs.track_feed import init_feed, refill_feed
+    from envs.track_generator import generate_track
+    from xrl_jax.train.tracks import cached_track_bank
+
+    bank = cached_track_bank(1, 1)
+    env, template = envs.make("tracking", track=jax.tree.map(lambda leaf: leaf[0], bank))
+    keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+    feeds = jax.jit(jax.vmap(lambda key: init_feed(env, template, key, 2 * count, 4)))(keys)
+    feeds = feeds.replace(issued=feeds.generated, driving=jnp.full_like(feeds.driving, -1))  # all slots free
+    refill = jax.jit(lambda feed: refill_feed(env, feed, count))
+    start = time.perf_counter()
+    jax.block_until_ready(refill(feeds))
+    compile_s = time.perf_counter() - start
+    seconds = timed(lambda: refill(feeds), repeats)
+    params = feeds.params
+    bank_leaves = (params.tracks, params.tables, params.start_s, params.reset_obs)
+    cost = jax.jit(generate_track).lower(jax.random.PRNGKey(0)).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost
+    return {
+        "seeds": seeds,
+        "tracks_per_refill": seeds * count,
+        "ms_per_track": 1e3 * seconds / (seeds * count),
+        "refill_s": seconds,
+        "compile_s": compile_s,
+        "xla_flops_per_track_loop_bodies_once": cost.get("flops"),
+        "bytes_per_track_in_feed": sum(x.nbytes for x in jax.tree.leaves(bank_leaves)) // (seeds * 2 * count),
+    }
+
+
 def bench_update(
     algo: str, width: int, seeds: int, updates: int, repeats: int, batch_size: int = 256
 ) -> dict:
@@ -356,6 +392,10 @@ def main(argv: list[str] | None = None) -> int:
     tr_parser.add_argument("--chunks", type=int, default=2, help="timed chunks after the first")
     tr_parser.add_argument("--preset", default="paper", choices=PRESETS)
     tr_parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra config overrides")
+    tk_parser = sub.add_parser("tracks", help="fresh-track refill cost per track, FLOPs per track")
+    tk_parser.add_argument("--seeds", nargs="+", type=int, default=[1, 4, 20])
+    tk_parser.add_argument("--count", type=int, default=64, help="tracks per seed and refill (half a feed)")
+    tk_parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
 
     report: dict = {"machine": machine_info(), "command": args.command}
@@ -395,6 +435,10 @@ def main(argv: list[str] | None = None) -> int:
                 for algo in args.algos:
                     updates = max(2, 40 * 64 // (width * seeds))  # keep each timed call ~1 s or more
                     report["results"].append(bench_update(algo, width, seeds, updates, args.repeats))
+    elif args.command == "tracks":
+        if min(args.seeds) < 1 or args.count < 1 or args.repeats < 1:
+            parser.error("--seeds, --count and --repeats must be positive")
+        report["results"] = [bench_tracks(seeds, args.count, args.repeats) for seeds in args.seeds]
     elif args.command == "matmul":
         report["results"] = bench_matmul(args.size)
     json.dump(report, sys.stdout, indent=2)

@@ -48,20 +48,23 @@ def main(argv: list[str] | None = None) -> int:
 
     from xrl_jax import evaluate as evaluate_mod
     from xrl_jax.explain import RunError, load_trained_agent
+    from xrl_jax.train import TrainConfig
 
+    try:
+        cfg = TrainConfig.from_dict(json.loads((run / "config.json").read_text())["config"])
+    except (OSError, ValueError, KeyError, TypeError):
+        cfg = None  # load_trained_agent below says what is wrong with the folder
+    if cfg is not None and cfg.multi_agent:
+        return fail("intersection runs have no tracks; their evaluation episodes are in the run's eval/")
+    if cfg is not None and args.tracks == "train" and cfg.fresh_tracks:
+        return fail(
+            f"{run} trained on fresh tracks (train_tracks=0): no training track was driven twice, so the "
+            "held-out evaluation already measures generalisation; use --tracks eval"
+        )
     try:
         cfg, trainer, _ = load_trained_agent(run, 0)
     except RunError as err:
         return fail(str(err))
-    if cfg.multi_agent:
-        return fail(
-            "intersection runs have no tracks; their evaluation episodes are in the run's eval/ files"
-        )
-    if args.tracks == "train" and cfg.fresh_tracks:
-        return fail(
-            f"{run} trained on fresh tracks (train_tracks=0): every training episode had a new track, so its "
-            "held-out evaluation already measures generalisation; use --tracks eval"
-        )
     params = trainer.env_params if args.tracks == "train" else trainer.eval_params
     available = int(params.tracks.num_points.shape[0])
     episodes = available if args.episodes is None else args.episodes

@@ -135,6 +135,46 @@ def test_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, caps
     assert status == 0 and "final return" in out
 
 
+@pytest.fixture(scope="module")
+def evaluate_cli(run):
+    spec = importlib.util.spec_from_file_location("evaluate_cli", ROOT / "experiments" / "evaluate.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_evaluate_cli_drives_a_bank_runs_agents_on_its_training_and_held_out_tracks(
+    evaluate_cli, smoke_run, capsys
+):
+    status, out, err = call(evaluate_cli, capsys, str(smoke_run), "--tracks", "eval")
+    assert status == 0, err
+    held_out = json.loads((smoke_run / "evaluation_eval.json").read_text())
+    assert held_out["episodes"] == 3 and [row["seed"] for row in held_out["per_seed"]] == [0, 1]
+    # XDSAC evaluates greedily and each track's start is fixed, so this repeats the run's own final
+    # evaluation; only the rounding of another batch shape (2 seeds vmapped there, 1 here) may differ.
+    final = json.loads((smoke_run / "summary.json").read_text())["per_seed"]
+    for row in held_out["per_seed"]:
+        assert abs(row["avg_return"] - final[str(row["seed"])]["avg_return"]) < 1e-3
+    status, out, err = call(evaluate_cli, capsys, str(smoke_run), "--tracks", "train", "--episodes", "2")
+    assert status == 0, err
+    assert "final return on 2 train tracks: IQM" in out
+    assert json.loads((smoke_run / "evaluation_train.json").read_text())["episodes"] == 2
+
+
+def test_evaluate_cli_refuses_what_it_cannot_measure(evaluate_cli, smoke_run, capsys, tmp_path):
+    status, _, err = call(evaluate_cli, capsys, str(smoke_run), "--tracks", "train", "--episodes", "4")
+    one_line_error(status, err, "--episodes 4", "only 3")
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    config = json.loads((smoke_run / "config.json").read_text())
+    config["config"]["train_tracks"] = 0
+    (fresh / "config.json").write_text(json.dumps(config))
+    status, _, err = call(evaluate_cli, capsys, str(fresh), "--tracks", "train")
+    one_line_error(status, err, "fresh tracks", "--tracks eval")
+    status, _, err = call(evaluate_cli, capsys, str(tmp_path / "none"))
+    one_line_error(status, err, "does not exist")
+
+
 @pytest.mark.parametrize(
     "args, fragments",
     [

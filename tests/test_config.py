@@ -10,8 +10,10 @@ from xrl_jax.config import (
     MAX_VEHICLES,
     PRESETS,
     AgentConfig,
+    TrainConfig,
     apply_overrides,
     preset,
+    resolve_config,
 )
 
 
@@ -217,3 +219,13 @@ def test_the_cli_help_documents_every_setting_from_the_fields():
                 ("env", "algo", "preset", "agent", "num_seeds", "total_steps")]  # fmt: skip
     for field in [*settable, *(f for f in dataclasses.fields(AgentConfig) if f.name != "algo")]:
         assert f"  {field.name} (" in text and field.metadata["help"].split()[0] in text
+
+
+def test_configs_written_before_neutral_flag_keep_their_flagged_neutral_row():
+    """Runs written before ``neutral_flag`` existed put 1 into the neutral row's present column; their
+    config.json restores that, so an old agent sees the inputs it was trained on."""
+    cfg = resolve_config("intersection", "xsac", "smoke")
+    old = cfg.to_dict()
+    del old["agent"]["neutral_flag"]
+    assert TrainConfig.from_dict(old).agent.neutral_flag is True
+    assert TrainConfig.from_dict(cfg.to_dict()).agent.neutral_flag is False  # the original's row

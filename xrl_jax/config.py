@@ -315,7 +315,9 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TrainConfig:
         data = dict(data)
-        agent = AgentConfig(**data.pop("agent"))
+        agent = dict(data.pop("agent"))
+        agent.setdefault("neutral_flag", agent.get("neutral_object", False))  # older runs flagged the row
+        agent = AgentConfig(**agent)
         _check_known(data, train_field_names(), "TrainConfig")
         return cls(agent=agent, **data)
 

@@ -8,6 +8,9 @@ Per seed (docs/algorithms.md §5, mapped to synchronous vector envs as §5.8 rec
 * afterwards every transition is followed by one gradient step (update-to-data ratio 1): E updates
   per vector step, as a ``lax.scan`` over E sampled batches; discrete agents act uniformly at random
   with probability 5 % (inside ``Agent.act``);
+* racing envs start every episode on a fresh track from the seed's own track feed
+  (:mod:`envs.track_feed`, refilled at the start of a chunk when needed), or with ``train_tracks`` > 0
+  on a track drawn from a fixed bank;
 * transitions go into the device-resident replay buffer (:mod:`xrl_jax.buffer`); with the paper's
   ``truncation="drop"`` the compact one-copy layout drops truncated transitions, with
   ``"bootstrap"`` the explicit layout keeps them with their true final observation.
