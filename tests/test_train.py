@@ -81,6 +81,9 @@ def test_overrides_reach_train_and_agent_fields():
         ({}, ["env=country_road"], "use --env"),
         ({}, ["algo=sac"], "use --algo"),
         ({}, ["truncation=maybe"], "unknown truncation"),
+        ({}, ["train_tracks=-1"], "train_tracks must be a non-negative integer"),
+        ({}, ["track_feed_size=6"], "track_feed_size (6) must be at least 2 x num_envs (8)"),
+        ({}, ["track_seed=1"], "the evaluation tracks would be training tracks"),
     ],
 )
 def test_invalid_settings_fail_with_one_line(kwargs, overrides, message):

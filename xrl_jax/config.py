@@ -363,6 +363,11 @@ def _validate_train(cfg: TrainConfig) -> None:
         )
     _require(cfg.warmup_steps >= e, f"warmup_steps ({cfg.warmup_steps}) must be at least num_envs ({e})")
     _require(
+        cfg.fresh_tracks or cfg.multi_agent or cfg.track_seed != cfg.eval_track_seed,
+        f"track_seed and eval_track_seed are both {cfg.track_seed}: "
+        "the evaluation tracks would be training tracks",
+    )
+    _require(
         cfg.track_feed_size >= 2 * e,
         f"track_feed_size ({cfg.track_feed_size}) must be at least 2 x num_envs ({2 * e}): every env "
         "starts on a fresh track and half the feed is refilled at a time",
