@@ -84,6 +84,7 @@ def test_smoke_run_leaves_a_complete_results_folder(smoke_run):
         assert [e["step"] for e in evals] == [192] and len(evals[0]["episode_returns"]) == 3
     summary = json.loads((smoke_run / "summary.json").read_text())
     assert summary["complete"] and summary["seeds"] == [0, 1]
+    assert summary["training_tracks"] == {"fresh": False, "bank": 3}  # the smoke preset's fixed bank
     assert set(summary["aggregate"]) >= {"avg_return", "avg_etr"}
     assert [p["step"] for p in summary["curve"]] == [192]
     assert summary["curve"][-1]["avg_return"]["estimate"] == summary["aggregate"]["avg_return"]["estimate"]
@@ -130,6 +131,7 @@ def test_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, caps
     summary_full = json.loads((full / "summary.json").read_text())
     summary_split = json.loads((split / "summary.json").read_text())
     assert summary_full["aggregate"] == summary_split["aggregate"]
+    assert summary_full["training_tracks"] == summary_split["training_tracks"]
     # Resuming a finished run trains nothing and reprints the table.
     status, out, _ = call(run, capsys, "--resume", str(split), "--quiet")
     assert status == 0 and "final return" in out
