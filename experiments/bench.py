@@ -258,6 +258,7 @@ def bench_tracks(seeds: int, count: int, repeats: int) -> dict:
     jax.block_until_ready(refill(feeds))
     compile_s = time.perf_counter() - start
     seconds = timed(lambda: refill(feeds), repeats)
+    step_us = _env_step_costs(env, template, init_feed, repeats)
     params = feeds.params
     bank_leaves = (params.tracks, params.tables, params.start_s, params.reset_obs)
     cost = jax.jit(generate_track).lower(jax.random.PRNGKey(0)).compile().cost_analysis()
@@ -270,7 +271,50 @@ def bench_tracks(seeds: int, count: int, repeats: int) -> dict:
         "compile_s": compile_s,
         "xla_flops_per_track_loop_bodies_once": cost.get("flops"),
         "bytes_per_track_in_feed": sum(x.nbytes for x in jax.tree.leaves(bank_leaves)) // (seeds * 2 * count),
+        "vector_step_us_4_envs": step_us,
     }
+
+
+def _env_step_costs(env, template, init_feed, repeats: int, steps: int = 2000) -> dict:
+    """Microseconds per step of 4 auto-resetting envs (a training seed's vector step) under random
+    actions: on a fixed bank of 128 (the auto-reset wrapper) and on a fresh-track feed of 128, so the
+    feed's per-step overhead is measured apart from the (much larger) agent update."""
+    from envs.core import vmap_env
+    from envs.racing import with_bank
+    from envs.track_feed import reset_with_feed, step_with_feed
+    from envs.track_generator import make_track_bank
+
+    space = env.action_space(template)
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (steps, 4, *space.shape), minval=-1, maxval=1)
+    bank_params = env.prepare(with_bank(template, make_track_bank(jax.random.PRNGKey(0), 128)))
+    venv = vmap_env(env, 4)
+
+    @jax.jit
+    def on_bank(key):
+        _, states = venv.reset(key, bank_params)
+
+        def body(states, inputs):
+            key, action = inputs
+            return venv.step(key, states, action, bank_params)[1], None
+
+        return jax.lax.scan(body, states, (jax.random.split(key, steps), actions))[0]
+
+    @jax.jit
+    def on_feed(key, states, feed):
+        def body(carry, inputs):
+            key, action = inputs
+            states, feed = carry
+            out = step_with_feed(env, key, states, action, feed)
+            return (out[1], out[-1]), None
+
+        return jax.lax.scan(body, (states, feed), (jax.random.split(key, steps), actions))[0]
+
+    key = jax.random.PRNGKey(2)
+    _, states, feed = reset_with_feed(env, jax.jit(lambda k: init_feed(env, template, k, 128, 4))(key))
+    jax.block_until_ready((on_bank(key), on_feed(key, states, feed)))
+    calls = {"bank": lambda: on_bank(key), "feed": lambda: on_feed(key, states, feed)}
+    seconds = timed_alternately(calls, repeats)
+    return {name: 1e6 * value / steps for name, value in seconds.items()}
 
 
 def bench_update(
