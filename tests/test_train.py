@@ -229,6 +229,17 @@ def test_fresh_tracks_give_every_episode_a_new_track_from_the_seeds_own_stream(t
         length = float(feed.params.tracks.length[seed, newest])
         np.testing.assert_allclose(length, float(expected.length), atol=0.2)
     assert abs(float(feed.params.tracks.length[0, 0]) - float(feed.params.tracks.length[1, 0])) > 1.0
+    # The feed is part of the checkpointed run state: a restore gives it back exactly.
+    from xrl_jax.checkpoint import Checkpointer
+
+    checkpointer = Checkpointer(tmp_path / "checkpoints")
+    try:
+        checkpointer.save(256, state, {"step": 256})
+        restored, _ = checkpointer.restore(trainer.abstract_state(2))
+    finally:
+        checkpointer.close()
+    for saved, loaded in zip(jax.tree.leaves(state.feed), jax.tree.leaves(restored.feed), strict=True):
+        np.testing.assert_array_equal(np.asarray(saved), np.asarray(loaded))
 
 
 # ---------------------------------------------------------------------------------------------
