@@ -47,22 +47,18 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     from xrl_jax import evaluate as evaluate_mod
-    from xrl_jax.explain import RunError, load_trained_agent
-    from xrl_jax.train import TrainConfig
+    from xrl_jax.explain import RunError, load_trained_agents, read_run_config
 
     try:
-        cfg = TrainConfig.from_dict(json.loads((run / "config.json").read_text())["config"])
-    except (OSError, ValueError, KeyError, TypeError):
-        cfg = None  # load_trained_agent below says what is wrong with the folder
-    if cfg is not None and cfg.multi_agent:
-        return fail("intersection runs have no tracks; their evaluation episodes are in the run's eval/")
-    if cfg is not None and args.tracks == "train" and cfg.fresh_tracks:
-        return fail(
-            f"{run} trained on fresh tracks (train_tracks=0): no training track was driven twice, so the "
-            "held-out evaluation already measures generalisation; use --tracks eval"
-        )
-    try:
-        cfg, trainer, _ = load_trained_agent(run, 0)
+        cfg = read_run_config(run)
+        if cfg.multi_agent:
+            return fail("intersection runs have no tracks; their evaluation episodes are in the run's eval/")
+        if args.tracks == "train" and cfg.fresh_tracks:
+            return fail(
+                f"{run} trained on fresh tracks (train_tracks=0): no training track was driven twice, so the "
+                "held-out evaluation already measures generalisation; use --tracks eval"
+            )
+        cfg, trainer, agent_states = load_trained_agents(run)
     except RunError as err:
         return fail(str(err))
     params = trainer.env_params if args.tracks == "train" else trainer.eval_params
@@ -70,17 +66,15 @@ def main(argv: list[str] | None = None) -> int:
     episodes = available if args.episodes is None else args.episodes
     if episodes > available:
         return fail(f"--episodes {episodes}: the run's {args.tracks} tracks are only {available}")
-    evaluate = jax.jit(evaluate_mod.make_evaluate(trainer.env, params, trainer.agent, episodes))
+    evaluate_one = evaluate_mod.make_evaluate(trainer.env, params, trainer.agent, episodes)
+    evaluate = jax.jit(jax.vmap(evaluate_one, in_axes=(None, 0)))
+    results = jax.device_get(evaluate(jax.random.PRNGKey(args.key), agent_states))  # all seeds at once
     per_seed = []
     for seed in range(cfg.num_seeds):
-        _, _, agent_state = load_trained_agent(run, seed)
-        result = evaluate_mod.summarize_episodes(
-            jax.device_get(evaluate(jax.random.PRNGKey(args.key), agent_state))
-        )
+        result = evaluate_mod.summarize_episodes(jax.tree.map(lambda x, s=seed: x[s], results))
         per_seed.append({"seed": seed, **result})
-        print(
-            f"seed {seed}: return {result['avg_return']:.2f}, early-termination rate {result['avg_etr']:.2f}"
-        )
+        etr = result["avg_etr"]
+        print(f"seed {seed}: return {result['avg_return']:.2f}, early-termination rate {etr:.2f}")
     aggregate = evaluate_mod.aggregate_metrics(per_seed, cfg.env)
     for key, label in evaluate_mod.summary_metrics(cfg.env):
         if key in aggregate:

@@ -217,17 +217,11 @@ def shared_trainer(cfg):
     return get_trainer(cfg)
 
 
-def load_trained_agent(run_dir, seed: int = 0):
-    """``(config, trainer, agent_state)`` of seed ``seed`` from the newest checkpoint of a results folder.
-
-    The folder's ``config.json`` holds the full :class:`~xrl_jax.train.TrainConfig`; ``plan.json``
-    says which checkpoint group holds the seed (one group when it is missing). The whole group's
-    run state is restored (structure from ``Trainer.abstract_state``) and the seed's agent taken out.
-    """
+def read_run_config(run_dir):
+    """The full :class:`~xrl_jax.train.TrainConfig` of a results folder (its ``config.json``)."""
     import json
     from pathlib import Path
 
-    from xrl_jax.checkpoint import Checkpointer
     from xrl_jax.train import TrainConfig
 
     run_dir = Path(run_dir)
@@ -237,19 +231,29 @@ def load_trained_agent(run_dir, seed: int = 0):
     if not config_path.is_file():
         raise RunError(f"{run_dir} is not a results folder (no config.json)")
     try:
-        cfg = TrainConfig.from_dict(json.loads(config_path.read_text())["config"])
+        return TrainConfig.from_dict(json.loads(config_path.read_text())["config"])
     except (ValueError, KeyError, TypeError) as err:
         raise RunError(f"{config_path} is unreadable or from another version ({err})") from None
-    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < cfg.num_seeds:
-        raise RunError(f"seed {seed} out of range: the run has seeds 0..{cfg.num_seeds - 1}")
-    plan_path = run_dir / "plan.json"
-    groups = (
-        json.loads(plan_path.read_text())["groups"] if plan_path.is_file() else [list(range(cfg.num_seeds))]
-    )
-    group_index = next((g for g, seeds in enumerate(groups) if seed in seeds), None)
-    if group_index is None:
-        raise RunError(f"seed {seed} is in no checkpoint group of {plan_path}")
-    directory = run_dir / "checkpoints" / f"group_{group_index}"
+
+
+def _checkpoint_groups(run_dir, cfg) -> list[list[int]]:
+    """The seed groups of the run's checkpoints (``plan.json``; one group when it is missing)."""
+    import json
+    from pathlib import Path
+
+    plan_path = Path(run_dir) / "plan.json"
+    if not plan_path.is_file():
+        return [list(range(cfg.num_seeds))]
+    return json.loads(plan_path.read_text())["groups"]
+
+
+def _restore_group_agents(run_dir, cfg, groups, group_index: int):
+    """``(trainer, seeds, agents)``: the newest checkpoint of one group, its seeds in row order."""
+    from pathlib import Path
+
+    from xrl_jax.checkpoint import Checkpointer
+
+    directory = Path(run_dir) / "checkpoints" / f"group_{group_index}"
     if not directory.is_dir():
         raise RunError(f"no checkpoint in {run_dir} (missing {directory})")
     checkpointer = Checkpointer(directory)
@@ -260,9 +264,44 @@ def load_trained_agent(run_dir, seed: int = 0):
         state, meta = checkpointer.restore(trainer.abstract_state(len(groups[group_index])))
     finally:
         checkpointer.close()
-    row = list(meta.get("seeds", groups[group_index])).index(seed)
-    agent_state = jax.tree.map(lambda leaf: leaf[row], state.agent)
-    return cfg, trainer, agent_state
+    return trainer, list(meta.get("seeds", groups[group_index])), state.agent
+
+
+def load_trained_agent(run_dir, seed: int = 0):
+    """``(config, trainer, agent_state)`` of seed ``seed`` from the newest checkpoint of a results folder.
+
+    The folder's ``config.json`` holds the full :class:`~xrl_jax.train.TrainConfig`; ``plan.json``
+    says which checkpoint group holds the seed (one group when it is missing). The whole group's
+    run state is restored (structure from ``Trainer.abstract_state``) and the seed's agent taken out.
+    """
+    cfg = read_run_config(run_dir)
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < cfg.num_seeds:
+        raise RunError(f"seed {seed} out of range: the run has seeds 0..{cfg.num_seeds - 1}")
+    groups = _checkpoint_groups(run_dir, cfg)
+    group_index = next((g for g, seeds in enumerate(groups) if seed in seeds), None)
+    if group_index is None:
+        raise RunError(f"seed {seed} is in no checkpoint group of {run_dir}/plan.json")
+    trainer, seeds, agents = _restore_group_agents(run_dir, cfg, groups, group_index)
+    row = seeds.index(seed)
+    return cfg, trainer, jax.tree.map(lambda leaf: leaf[row], agents)
+
+
+def load_trained_agents(run_dir):
+    """``(config, trainer, agent_states)``: every seed's agent, stacked on a leading axis in seed
+    order, restoring each checkpoint group once."""
+    cfg = read_run_config(run_dir)
+    groups = _checkpoint_groups(run_dir, cfg)
+    by_seed, trainer = {}, None
+    for group_index in range(len(groups)):
+        trainer, seeds, agents = _restore_group_agents(run_dir, cfg, groups, group_index)
+        for row, seed in enumerate(seeds):
+            by_seed[seed] = jax.tree.map(lambda leaf, r=row: leaf[r], agents)
+    missing = sorted(set(range(cfg.num_seeds)) - set(by_seed))
+    if missing:
+        raise RunError(f"seeds {missing} are in no checkpoint group of {run_dir}/plan.json")
+    ordered = [by_seed[seed] for seed in range(cfg.num_seeds)]
+    stacked = jax.tree.map(lambda *leaves: jax.numpy.stack(leaves), *ordered)
+    return cfg, trainer, stacked
 
 
 # ------------------------------------------------------------------------------------------------
