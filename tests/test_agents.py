@@ -543,10 +543,11 @@ def test_agent_state_is_a_pytree_with_traced_hparams(xsac_agent):
     _, state = xsac_agent
     assert isinstance(state, AgentState)
     leaves = jax.tree_util.tree_leaves(state.hparams)
-    assert len(leaves) == 7 and all(leaf.shape == () for leaf in leaves)
+    assert len(leaves) == 8 and all(leaf.shape == () for leaf in leaves)
     np.testing.assert_allclose(state.hparams.target_entropy, -2.0)  # −A default for XSAC
     np.testing.assert_allclose(state.hparams.alpha_lr, state.hparams.critic_lr)
-    assert {f.name for f in dataclasses.fields(HyperParams)} == set(TRACED_FIELDS)
+    assert {f.name for f in dataclasses.fields(HyperParams)} == {*TRACED_FIELDS, "init_log_alpha"}
+    np.testing.assert_allclose(state.log_alpha, state.hparams.init_log_alpha)
 
 
 @pytest.mark.slow

@@ -66,7 +66,10 @@ BATCH_KEYS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
 
 @struct.dataclass
 class HyperParams:
-    """Traced optimisation constants (scalars; vmappable for sweeps, e.g. κ in paper Fig. 8)."""
+    """Traced optimisation constants (scalars; vmappable for sweeps, e.g. κ in paper Fig. 8).
+
+    ``init_log_alpha`` is where log α starts, also after a re-initialisation, so that a swept
+    initial α survives one."""
 
     actor_lr: Array
     critic_lr: Array
@@ -75,6 +78,7 @@ class HyperParams:
     tau: Array
     kappa: Array
     target_entropy: Array
+    init_log_alpha: Array
 
 
 @struct.dataclass
@@ -110,6 +114,7 @@ def make_hparams(config: AgentConfig, action_size: int) -> HyperParams:
         tau=_float(config.tau),
         kappa=_float(config.kappa),
         target_entropy=_float(config.resolved_target_entropy(action_size)),
+        init_log_alpha=_float(math.log(config.init_alpha)),
     )
 
 
@@ -207,7 +212,7 @@ class Agent:
         critic_params = self.networks.critic.init(critic_key, *critic_args)
         if hparams is None:
             hparams = make_hparams(self.config, self.action_size)
-        log_alpha = _float(math.log(self.config.init_alpha))
+        log_alpha = jnp.asarray(hparams.init_log_alpha)
         return AgentState(
             actor_params=actor_params,
             critic_params=critic_params,

@@ -16,6 +16,7 @@ preset touches this file only.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import textwrap
 import typing
@@ -40,8 +41,10 @@ MAX_VEHICLES = 8  # vehicle slots of the intersection env (envs.intersection.MAX
 # Fields that become traced leaves of the agent state (``AgentState.hparams``; can differ per vmapped
 # seed / sweep member). init_alpha only sets the initial ``AgentState.log_alpha``, itself a traced leaf.
 TRACED_FIELDS = ("actor_lr", "critic_lr", "alpha_lr", "gamma", "tau", "kappa", "target_entropy")
+# What ``--sweep`` may vary within one compiled program: the traced fields and the initial α.
+SWEEPABLE_FIELDS = (*TRACED_FIELDS, "init_alpha")
 # Settings that only the host loop reads: they change neither the compiled code nor the results.
-HOST_ONLY_FIELDS = ("max_group_size", "memory_budget_gb", "checkpoint_minutes")
+HOST_ONLY_FIELDS = ("max_group_size", "memory_budget_gb", "checkpoint_minutes", "num_devices")
 
 
 class ConfigError(ValueError):
@@ -258,6 +261,8 @@ class TrainConfig:
     max_group_size: int = _field(0, "seeds per group at most; 0 = as many as the memory budget allows")
     memory_budget_gb: float = _field(0.0, "0 = 90 % of the device memory (host RAM within any cgroup limit)")
     checkpoint_minutes: float = _field(30.0, "also checkpoint by wall time (costing at most 2 %); 0 = off")
+    num_devices: int = _field(0, "devices the members are spread over (--devices); 0 = every device JAX sees")
+    sweep: tuple = _field((), "swept agent settings, ((name, (value, ...)), ...) (--sweep); the grid is their product")
     agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
 
     def __post_init__(self) -> None:
@@ -306,15 +311,43 @@ class TrainConfig:
     def replace(self, **changes: Any) -> TrainConfig:
         return dataclasses.replace(self, **changes)
 
+    # ---- sweep points and members -------------------------------------------------------------
+    @property
+    def sweep_points(self) -> list[dict[str, float]]:
+        """The swept values of every point of the grid (the product of the swept lists, the first
+        field varying slowest); one empty point for a plain run."""
+        names = [name for name, _ in self.sweep]
+        return [dict(zip(names, values, strict=True)) for values in itertools.product(*(v for _, v in self.sweep))]
+
+    @property
+    def num_points(self) -> int:
+        return math.prod(len(values) for _, values in self.sweep)
+
+    @property
+    def num_members(self) -> int:
+        """Sweep points x seeds: the rows of the one vmapped axis the run trains."""
+        return self.num_points * self.num_seeds
+
+    def member_point_seed(self, member: int) -> tuple[int, int]:
+        """``(point, seed)`` of member ``member`` (members are point-major: point p, seed s is
+        member p * num_seeds + s)."""
+        return divmod(int(member), self.num_seeds)
+
+    def point_agent(self, point: int) -> AgentConfig:
+        """The agent config of sweep point ``point`` (validated, like any config)."""
+        return self.agent.replace(**self.sweep_points[point])
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: the train fields and the agent config, both fully resolved."""
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "agent"}
+        out["sweep"] = [[name, list(values)] for name, values in self.sweep]
         out["agent"] = dataclasses.asdict(self.agent)
         return out
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TrainConfig:
         data = dict(data)
+        data["sweep"] = tuple((name, tuple(values)) for name, values in data.get("sweep", ()))
         agent = dict(data.pop("agent"))
         agent.setdefault("neutral_flag", agent.get("neutral_object", False))  # older runs flagged the row
         agent = AgentConfig(**agent)
@@ -340,7 +373,9 @@ def _validate_train(cfg: TrainConfig) -> None:
         _require(
             _is_int(getattr(cfg, name), 1), f"{name} must be a positive integer, got {getattr(cfg, name)!r}"
         )
-    for name in ("seed", "train_tracks", "track_seed", "eval_track_seed", "max_group_size", "reinit_steps"):
+    for name in (
+        "seed", "train_tracks", "track_seed", "eval_track_seed", "max_group_size", "reinit_steps", "num_devices"
+    ):
         value = getattr(cfg, name)
         _require(_is_int(value, 0), f"{name} must be a non-negative integer, got {value!r}")
     _require(
@@ -376,11 +411,74 @@ def _validate_train(cfg: TrainConfig) -> None:
         cfg.buffer_size >= cfg.batch_size,
         f"buffer_size ({cfg.buffer_size}) must be at least batch_size ({cfg.batch_size})",
     )
+    _validate_sweep(cfg)
     if cfg.multi_agent:
         _require(
             cfg.buffer_size >= MAX_VEHICLES * e,
             f"buffer_size ({cfg.buffer_size}) must hold one step of all agents ({MAX_VEHICLES * e})",
         )
+
+
+def unused_sweep_reason(agent: AgentConfig, name: str) -> str | None:
+    """Why ``agent`` would ignore swept field ``name`` (None when it uses it): a sweep over a value
+    the algorithm never reads would train identical members and report noise as an effect."""
+    if name == "kappa" and not agent.is_mixture:
+        return f"{agent.algo} has no mixture (kappa weighs the mixture entropy of xsac and xdsac)"
+    if name in ("alpha_lr", "target_entropy") and not agent.auto_alpha:
+        return f"the entropy coefficient is fixed (auto_alpha false), so {name} is never used"
+    return None
+
+
+def _validate_sweep(cfg: TrainConfig) -> None:
+    sweep = cfg.sweep
+    _require(isinstance(sweep, tuple), f"sweep must be a tuple of (name, values) pairs, got {sweep!r}")
+    names = []
+    for entry in sweep:
+        _require(
+            isinstance(entry, tuple) and len(entry) == 2 and isinstance(entry[1], tuple),
+            f"sweep entries must be (name, (value, ...)) pairs, got {entry!r}",
+        )
+        name, values = entry
+        _require(name not in names, f"--sweep {name} is given twice; give all its values in one list")
+        names.append(name)
+        _require(
+            name in SWEEPABLE_FIELDS,
+            f"cannot sweep {name}: only traced settings can vary within one program "
+            f"(sweepable: {', '.join(SWEEPABLE_FIELDS)}); run one process per value of a static setting",
+        )
+        _require(len(values) > 0, f"--sweep {name} has no values")
+        _require(all(_is_number(v) and math.isfinite(v) for v in values), f"--sweep {name}: values must be finite numbers")
+        _require(len(set(values)) == len(values), f"--sweep {name} repeats a value: {list(values)}")
+        reason = unused_sweep_reason(cfg.agent, name)
+        _require(reason is None, f"cannot sweep {name}: {reason}")
+    for point in cfg.sweep_points:  # every point must be a valid agent on its own
+        try:
+            cfg.agent.replace(**point)
+        except ConfigError as err:
+            raise ConfigError(f"sweep point {point}: {err}") from None
+
+
+def parse_sweep(items: list[str] | tuple[str, ...]) -> tuple:
+    """``["kappa=-0.01,0,0.01", ...]`` (``--sweep``, repeatable) -> ``(("kappa", (-0.01, 0.0, 0.01)),
+    ...)``; text that is not a list of numbers raises :class:`ConfigError` in one line. Which
+    fields may be swept is checked with the config (:func:`_validate_sweep`)."""
+    out = []
+    for item in items:
+        name, sep, text = item.partition("=")
+        name = name.strip().removeprefix("agent.")
+        if not sep or not name:
+            raise ConfigError(f"--sweep expects FIELD=V1,V2,..., got {item!r}")
+        if name not in field_names() and name not in train_field_names():
+            raise ConfigError(f"--sweep {name}: unknown setting; sweepable: {', '.join(SWEEPABLE_FIELDS)}")
+        words = [w.strip() for w in text.split(",")]
+        if not text.strip() or not all(words):
+            raise ConfigError(f"--sweep {name}: expected a comma-separated list of numbers, got {text!r}")
+        try:
+            values = tuple(float(w) for w in words)
+        except ValueError:
+            raise ConfigError(f"--sweep {name}: {text!r} is not a list of numbers") from None
+        out.append((name, values))
+    return tuple(out)
 
 
 # ---- Presets: agent hyper-parameters per (env, algo), train-loop settings per (preset, scenario) ----
@@ -549,24 +647,26 @@ def resolve_config(
     num_seeds: int = 1,
     total_steps: int | None = None,
     overrides: Mapping[str, str] | None = None,
+    sweep: tuple = (),
 ) -> TrainConfig:
     """The fully resolved config: preset, then the explicit arguments, then ``overrides``.
 
     ``overrides`` keys are :class:`TrainConfig` fields or :class:`AgentConfig` fields (an
-    ``agent.`` prefix is accepted); values are text, parsed with the field's type.
+    ``agent.`` prefix is accepted); values are text, parsed with the field's type. ``sweep`` is
+    :func:`parse_sweep`'s result.
     """
     preset_name = preset
     for kind, value, choices in (("env", env, ENVS), ("algo", algo, ALGOS), ("preset", preset_name, PRESETS)):
         _check_choice("", kind, value, choices)
     fields = preset_train_fields(preset_name, env)
-    fields.update(env=env, algo=algo, preset=preset_name, num_seeds=num_seeds)
+    fields.update(env=env, algo=algo, preset=preset_name, num_seeds=num_seeds, sweep=tuple(sweep))
     if total_steps is not None:
         fields["total_steps"] = total_steps
     agent_changes: dict[str, str] = {}
     train_names, agent_names = set(train_field_names()), set(field_names())
     for key, value in (overrides or {}).items():
         name = key.removeprefix("agent.")
-        if name in ("env", "algo", "preset", "agent"):
+        if name in ("env", "algo", "preset", "agent", "sweep"):
             raise ConfigError(f"{name!r} cannot be changed with --set; use --{name}")
         if key.startswith("agent.") or (name not in train_names and name in agent_names):
             if name not in agent_names:
@@ -600,7 +700,7 @@ def settings_help(width: int = 100) -> str:
     """Every ``--set`` key with its type, default and documentation, for ``run.py --help``."""
     lines = ["(defaults are the fields' own, which the presets override; § = docs/algorithms.md)"]
     for title, cls, skip in (
-        ("run settings", TrainConfig, {"env", "algo", "preset", "agent", "num_seeds", "total_steps"}),
+        ("run settings", TrainConfig, {"env", "algo", "preset", "agent", "num_seeds", "total_steps", "sweep"}),
         ("agent settings ('agent.' prefix optional)", AgentConfig, {"algo"}),
     ):
         lines.append(f"{title}:")

@@ -54,6 +54,8 @@ def config_fingerprint(cfg: TrainConfig) -> str:
     fields = cfg.to_dict()
     for host_only in HOST_ONLY_FIELDS:
         fields.pop(host_only)
+    if not fields["sweep"]:  # a plain run hashes as before sweeps existed
+        fields.pop("sweep")
     return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -42,6 +42,20 @@ def run_paths(out: Path) -> dict[str, Path]:
     }
 
 
+def member_stem(cfg, member: int) -> str:
+    """The file name (without suffix) of member ``member``'s metrics and evaluations: ``seed_<s>``
+    in a plain run, ``point_<p>_seed_<s>`` in a sweep (``cfg`` is the run's TrainConfig)."""
+    point, seed = cfg.member_point_seed(member)
+    return f"seed_{seed}" if cfg.num_points == 1 else f"point_{point}_seed_{seed}"
+
+
+def member_fields(cfg, member: int) -> dict:
+    """What every record of member ``member`` says about it: its seed, its sweep point and the
+    point's swept values (empty in a plain run)."""
+    point, seed = cfg.member_point_seed(member)
+    return {"seed": seed, "point": point, "sweep": cfg.sweep_points[point]}
+
+
 # ------------------------------------------------------------------------------------------------
 # Writing
 # ------------------------------------------------------------------------------------------------
