@@ -8,7 +8,8 @@ episodes are frozen by masks. Per episode: return, length, how it ended; early t
 = terminated with a last reward below −0.5, success (SR) = terminated otherwise.
 
 Over seeds the final score is reported as the IQM with a 95 % stratified bootstrap confidence
-interval (:mod:`xrl_jax.stats`), the paper's protocol.
+interval (:mod:`xrl_jax.stats`), the paper's protocol. A hyper-parameter sweep (``--sweep``) is
+reported per sweep point, over that point's seeds (:func:`summarize_run`, :func:`plot_sweep`).
 """
 
 from __future__ import annotations
@@ -227,11 +228,19 @@ def summary_metrics(env: str) -> tuple[tuple[str, str], ...]:
     return MULTI_AGENT_SUMMARY_METRICS if env == "intersection" else SUMMARY_METRICS
 
 
-def _seed_evaluations(out: Path, cfg) -> list[dict[int, dict]]:
-    """Per seed, its evaluation rows by step (the last row of a step wins: a resumed run rewrites)."""
+def _member_stems(cfg) -> list[str]:
+    """The file stem of every member (point-major): ``seed_<s>``, or ``point_<p>_seed_<s>`` in a sweep."""
+    from xrl_jax.train.run_folder import member_stem  # lazy: xrl_jax.train imports the trainer
+
+    return [member_stem(cfg, member) for member in range(cfg.num_members)]
+
+
+def _member_evaluations(out: Path, cfg) -> list[dict[int, dict]]:
+    """Per member (point-major; in a plain run, per seed), its evaluation rows by step (the last row
+    of a step wins: a resumed run rewrites)."""
     return [
-        {r["step"]: r for r in read_jsonl(out / "eval" / f"seed_{seed}.jsonl") if "step" in r}
-        for seed in range(cfg.num_seeds)
+        {r["step"]: r for r in read_jsonl(out / "eval" / f"{stem}.jsonl") if "step" in r}
+        for stem in _member_stems(cfg)
     ]
 
 
@@ -251,10 +260,20 @@ def aggregate_metrics(rows: list[dict], env: str) -> dict[str, Any]:
     return result
 
 
-def learning_curve(out: str | Path, cfg) -> list[dict[str, Any]]:
+def learning_curve(out: str | Path, cfg, point: int | None = None) -> list[dict[str, Any]]:
     """The evaluation curve over seeds: at every evaluation step that all seeds reached, each summary
-    metric's IQM, 95 % stratified bootstrap CI, mean and per-seed values."""
-    return _curve(_seed_evaluations(Path(out), cfg), cfg.env)
+    metric's IQM, 95 % stratified bootstrap CI, mean and per-seed values. A sweep has one curve per
+    point: pass ``point`` (curves never mix points)."""
+    evaluations = _member_evaluations(Path(out), cfg)
+    if point is None:
+        if cfg.num_points > 1:
+            raise ValueError(
+                f"a sweep has one learning curve per point; pass point= (0..{cfg.num_points - 1})"
+            )
+        point = 0
+    if not 0 <= point < cfg.num_points:
+        raise ValueError(f"point {point} is not in 0..{cfg.num_points - 1}")
+    return _curve(evaluations[point * cfg.num_seeds : (point + 1) * cfg.num_seeds], cfg.env)
 
 
 def _curve(evaluations: list[dict[int, dict]], env: str) -> list[dict[str, Any]]:
@@ -270,41 +289,81 @@ def _curve(evaluations: list[dict[int, dict]], env: str) -> list[dict[str, Any]]
     return curve
 
 
+# What every record says about its member (run_folder.member_fields): in a plain run "point" is 0
+# and "sweep" is {}, which the summary leaves out so that it reads as before sweeps existed.
+_SWEEP_RECORD_FIELDS = ("point", "sweep")
+
+
 def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
     """Final evaluation of every seed and, over seeds, the IQM with its 95 % stratified bootstrap CI;
-    ``curve`` holds the same statistics at every evaluation step (:func:`learning_curve`)."""
+    ``curve`` holds the same statistics at every evaluation step (:func:`learning_curve`).
+
+    A sweep (``cfg.num_points > 1``) is summarised per point, never over points: top-level
+    ``aggregate`` is ``{}`` and ``curve`` is ``[]``; ``seeds`` lists the member stems
+    (``point_<p>_seed_<s>``) with a final evaluation, ``complete`` says whether every member has one,
+    ``per_seed`` (and ``training_tracks``) are keyed by member stem, and ``sweep`` holds
+    ``{"fields": [name, ...], "points": [{"point": p, "values": {name: value}, "seeds": [seed with a
+    final evaluation], "complete": bool, "aggregate": {...}, "curve": [...]}, ...]}`` with
+    ``aggregate`` and ``curve`` as in a plain run, over that point's seeds.
+    """
     out = Path(out)
-    evaluations = _seed_evaluations(out, cfg)
-    finals = {seed: rows[cfg.total_steps] for seed, rows in enumerate(evaluations) if cfg.total_steps in rows}
-    summary: dict[str, Any] = {
-        "env": cfg.env,
-        "algo": cfg.algo,
-        "preset": cfg.preset,
-        "steps": cfg.total_steps,
-        "seeds": sorted(finals),
-        "complete": len(finals) == cfg.num_seeds,
-        "per_seed": {
-            str(s): {k: v for k, v in r.items() if k != "episode_returns"} for s, r in finals.items()
-        },
-        "aggregate": aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
-        "curve": _curve(evaluations, cfg.env),
-    }
+    evaluations = _member_evaluations(out, cfg)
+    stems = _member_stems(cfg)
+    final = cfg.total_steps
+    summary: dict[str, Any] = {"env": cfg.env, "algo": cfg.algo, "preset": cfg.preset, "steps": final}
+    if cfg.num_points == 1:
+        finals = {seed: rows[final] for seed, rows in enumerate(evaluations) if final in rows}
+        summary |= {
+            "seeds": sorted(finals),
+            "complete": len(finals) == cfg.num_seeds,
+            "per_seed": {str(s): _per_seed_row(r, drop=_SWEEP_RECORD_FIELDS) for s, r in finals.items()},
+            "aggregate": aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
+            "curve": _curve(evaluations, cfg.env),
+        }
+    else:
+        finished = [m for m, rows in enumerate(evaluations) if final in rows]
+        points = []
+        for point, values in enumerate(cfg.sweep_points):
+            members = range(point * cfg.num_seeds, (point + 1) * cfg.num_seeds)
+            finals = [evaluations[m][final] for m in members if final in evaluations[m]]
+            points.append({
+                "point": point,
+                "values": dict(values),
+                "seeds": [cfg.member_point_seed(m)[1] for m in members if final in evaluations[m]],
+                "complete": len(finals) == cfg.num_seeds,
+                "aggregate": aggregate_metrics(finals, cfg.env) if finals else {},
+                "curve": _curve([evaluations[m] for m in members], cfg.env),
+            })  # fmt: skip
+        summary |= {
+            "seeds": [stems[m] for m in finished],
+            "complete": len(finished) == cfg.num_members,
+            "per_seed": {stems[m]: _per_seed_row(evaluations[m][final]) for m in finished},
+            "aggregate": {},  # over points it would mix hyper-parameters: see sweep.points[i].aggregate
+            "curve": [],  # likewise: sweep.points[i].curve
+            "sweep": {"fields": [name for name, _ in cfg.sweep], "points": points},
+        }
     if not cfg.multi_agent:
         summary["training_tracks"] = _training_tracks(out, cfg)
     return summary
 
 
+def _per_seed_row(row: dict, drop: tuple[str, ...] = ()) -> dict:
+    return {k: v for k, v in row.items() if k != "episode_returns" and k not in drop}
+
+
 def _training_tracks(out: Path, cfg) -> dict[str, Any]:
     """What the seeds trained on: a fixed bank, or fresh tracks with each seed's count of distinct
-    tracks driven and of resets that found its feed empty (from its last metrics line)."""
+    tracks driven and of resets that found its feed empty (from its last metrics line), keyed by
+    seed (``"0"``) in a plain run and by member stem (``"point_0_seed_0"``) in a sweep."""
     if not cfg.fresh_tracks:
         return {"fresh": False, "bank": cfg.train_tracks}
     used, reused = {}, {}
-    for seed in range(cfg.num_seeds):
-        rows = [r for r in read_jsonl(out / "metrics" / f"seed_{seed}.jsonl") if "rollout/tracks_used" in r]
+    for member, stem in enumerate(_member_stems(cfg)):
+        key = str(cfg.member_point_seed(member)[1]) if cfg.num_points == 1 else stem
+        rows = [r for r in read_jsonl(out / "metrics" / f"{stem}.jsonl") if "rollout/tracks_used" in r]
         if rows:
-            used[str(seed)] = int(rows[-1]["rollout/tracks_used"])
-            reused[str(seed)] = int(rows[-1]["rollout/tracks_reused"])
+            used[key] = int(rows[-1]["rollout/tracks_used"])
+            reused[key] = int(rows[-1]["rollout/tracks_reused"])
     return {"fresh": True, "distinct_per_seed": used, "reused_per_seed": reused}
 
 
@@ -326,9 +385,22 @@ def format_training_tracks(summary: dict[str, Any]) -> str | None:
     )
 
 
+def _format_value(value: Any) -> str:
+    return f"{value:g}" if isinstance(value, int | float) else str(value)
+
+
+def _format_interval(agg: dict[str, Any] | None) -> str:
+    return f"{agg['estimate']:.3f} [{agg['low']:.3f}, {agg['high']:.3f}]" if agg else "-"
+
+
 def format_table(summary: dict[str, Any]) -> str:
-    """A plain-text table of the aggregate scores (IQM and 95 % stratified bootstrap CI over seeds)."""
+    """A plain-text table of the aggregate scores (IQM and 95 % stratified bootstrap CI over seeds);
+    for a sweep, one row per point: its values, IQM [95 % CI] of the first two summary metrics
+    (final return and early-termination rate; for intersection, return and completed trips) and its
+    number of seeds with a final evaluation (``*``: not all of them have one yet)."""
     title = f"{summary['env']} / {summary['algo']} ({summary['preset']}), {summary['steps']} steps per seed"
+    if summary.get("sweep"):
+        return _format_sweep_table(summary, title)
     lines = [title, f"{'metric':<26} {'IQM':>10} {'95% CI':>22} {'mean':>10} {'seeds':>6}"]
     for key, label in summary_metrics(summary["env"]):
         agg = summary["aggregate"].get(key)
@@ -344,6 +416,32 @@ def format_table(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _format_sweep_table(summary: dict[str, Any], title: str) -> str:
+    sweep = summary["sweep"]
+    chosen = summary_metrics(summary["env"])[:2]
+    widths = [max(8, len(name)) for name in sweep["fields"]]
+    header = "".join(f"{name:>{w}} " for name, w in zip(sweep["fields"], widths, strict=True))
+    header += "".join(f" {label + ' IQM [95% CI]':>34}" for _, label in chosen) + f" {'seeds':>6}"
+    lines = [title, header]
+    for point in sweep["points"]:
+        values = [_format_value(point["values"][name]) for name in sweep["fields"]]
+        row = "".join(f"{value:>{w}} " for value, w in zip(values, widths, strict=True))
+        row += "".join(f" {_format_interval(point['aggregate'].get(key)):>34}" for key, _ in chosen)
+        seeds = f"{len(point['seeds'])}{'' if point['complete'] else '*'}"
+        lines.append(row + f" {seeds:>6}")
+    if not all(point["complete"] for point in sweep["points"]):
+        lines.append("* not every seed of the point has a final evaluation yet")
+    tracks = format_training_tracks(summary)
+    if tracks:
+        lines.append(tracks)
+    return "\n".join(lines)
+
+
+def _point_label(values: dict[str, Any]) -> str:
+    """``{"kappa": 0.01, "gamma": 0.99}`` -> ``"kappa=0.01, gamma=0.99"``."""
+    return ", ".join(f"{name}={_format_value(value)}" for name, value in values.items())
+
+
 def _curve_label(label: str) -> str:
     """'final return' -> 'return': a curve point is not final."""
     return label.removeprefix("final ")
@@ -354,6 +452,14 @@ def format_curve(summary: dict[str, Any], metrics: int = 2) -> str:
     ``metrics`` summary metrics."""
     chosen = summary_metrics(summary["env"])[:metrics]
     header = f"{'step':>10}" + "".join(f"  {_curve_label(label):>30}" for _, label in chosen)
+    if summary.get("sweep"):  # one line per point: the last step all its seeds reached
+        title = "learning curves per sweep point: IQM [95% CI] at the last step all its seeds reached"
+        lines = [f"{title} (every step: summary.json)", header + "  point"]
+        for point in summary["sweep"]["points"]:
+            last = point["curve"][-1] if point["curve"] else {"step": "-"}
+            cells = "".join(f"  {_format_interval(last.get(key)):>30}" for key, _ in chosen)
+            lines.append(f"{last['step']:>10}{cells}  {_point_label(point['values'])}")
+        return "\n".join(lines)
     lines = ["learning curve (IQM [95% CI] over seeds)", header]
     for point in summary.get("curve", []):
         cells = []
@@ -366,10 +472,13 @@ def format_curve(summary: dict[str, Any], metrics: int = 2) -> str:
 
 def plot_learning_curve(summary: dict[str, Any], path: str | Path, metrics: int = 2) -> Path:
     """Save the learning curve (IQM line, 95 % CI band, thin per-seed lines) of the first ``metrics``
-    summary metrics as one PNG panel each; returns ``path``."""
+    summary metrics as one PNG panel each; returns ``path``. For a sweep, one IQM line (and a light
+    CI band) per point, labelled by its values, without per-seed lines."""
     from matplotlib.figure import Figure  # no pyplot: no GUI backend, safe in threads and on servers
 
     chosen = summary_metrics(summary["env"])[:metrics]
+    if summary.get("sweep"):
+        return _plot_sweep_curves(summary, Path(path), chosen)
     curve = summary.get("curve", [])
     figure = Figure(figsize=(4.2 * len(chosen), 3.2), layout="constrained")
     axes = figure.subplots(1, len(chosen), squeeze=False)[0]
@@ -391,6 +500,107 @@ def plot_learning_curve(summary: dict[str, Any], path: str | Path, metrics: int 
         ax.grid(alpha=0.3)
     seeds = max((p[key]["n"] for p in curve for key, _ in chosen if key in p), default=0)
     figure.suptitle(f"{summary['env']} / {summary['algo']} ({summary['preset']}), {seeds} seeds")
+    path = Path(path)
+    figure.savefig(path, dpi=110)
+    return path
+
+
+def _plot_sweep_curves(summary: dict[str, Any], path: Path, chosen) -> Path:
+    from matplotlib.figure import Figure
+
+    points = summary["sweep"]["points"]
+    figure = Figure(figsize=(4.2 * len(chosen), 3.2), layout="constrained")
+    axes = figure.subplots(1, len(chosen), squeeze=False)[0]
+    for ax, (key, label) in zip(axes, chosen, strict=True):
+        for index, point in enumerate(points):
+            rows = [p for p in point["curve"] if key in p]
+            if not rows:
+                continue
+            color = f"C{index % 10}"
+            steps = [p["step"] for p in rows]
+            low, high = [p[key]["low"] for p in rows], [p[key]["high"] for p in rows]
+            ax.fill_between(steps, low, high, color=color, alpha=0.12, linewidth=0)
+            ax.plot(steps, [p[key]["estimate"] for p in rows], color=color, marker="o", markersize=3,
+                    label=_point_label(point["values"]))  # fmt: skip
+        if ax.has_data():
+            ax.legend(loc="best", fontsize="x-small")
+        ax.set_xlabel("environment steps per seed")
+        format_step_axis(ax)
+        ax.set_title(_curve_label(label) + " (IQM, 95 % CI)")
+        ax.grid(alpha=0.3)
+    figure.suptitle(f"{summary['env']} / {summary['algo']} ({summary['preset']}), sweep over "
+                    f"{', '.join(summary['sweep']['fields'])}")  # fmt: skip
+    figure.savefig(path, dpi=110)
+    return path
+
+
+def sweep_x_scale(values) -> tuple[str, float | None]:
+    """``("symlog", linthresh)`` when the swept values span zero (include it, or both signs) and
+    their non-zero magnitudes span at least two orders of magnitude (e.g. kappa = -0.01 … 0.1), with
+    the smallest non-zero magnitude as the linear threshold; else ``("linear", None)``."""
+    values = np.asarray(values, np.float64)
+    magnitudes = np.abs(values[values != 0])
+    spans_zero = values.size and (values.min() <= 0 <= values.max())
+    if spans_zero and magnitudes.size >= 2 and magnitudes.max() >= 100 * magnitudes.min():
+        return "symlog", float(magnitudes.min())
+    return "linear", None
+
+
+def plot_sweep(summary: dict[str, Any], path: str | Path, baseline: dict[str, Any] | None = None) -> Path:
+    """Save the sweep figure (the paper's Fig. 8 style) as a PNG; returns ``path``.
+
+    Two panels, the first two summary metrics (final return and early-termination rate; for
+    intersection, return and completed trips): x is the swept value of the first field, y the IQM
+    over the point's seeds with its 95 % CI as error bars. With more than one swept field, one line
+    per combination of the other fields' values. ``baseline`` (the summary of a plain run, e.g.
+    DSAC) adds a horizontal line at its final IQM with its CI shaded, labelled ``baseline: <algo>``.
+    The x scale is symlog when the values span zero and several orders of magnitude
+    (:func:`sweep_x_scale`), else linear.
+    """
+    from matplotlib.figure import Figure  # no pyplot: no GUI backend, safe in threads and on servers
+
+    sweep = summary.get("sweep")
+    if not sweep:
+        raise ValueError("plot_sweep needs the summary of a sweep (summary['sweep'] is missing)")
+    fields = sweep["fields"]
+    first, others = fields[0], fields[1:]
+    lines: dict[tuple, list[dict]] = {}  # the other fields' values -> the points on that line
+    for point in sweep["points"]:
+        lines.setdefault(tuple(point["values"][name] for name in others), []).append(point)
+    xs = sorted({point["values"][first] for point in sweep["points"]})
+    scale, linthresh = sweep_x_scale(xs)
+    chosen = summary_metrics(summary["env"])[:2]
+    figure = Figure(figsize=(4.4 * len(chosen), 3.4), layout="constrained")
+    axes = figure.subplots(1, len(chosen), squeeze=False)[0]
+    for ax, (key, label) in zip(axes, chosen, strict=True):
+        if scale == "symlog":  # before plotting, so that the margins apply on this scale
+            ax.set_xscale("symlog", linthresh=linthresh)
+        for index, (rest, points) in enumerate(lines.items()):
+            done = sorted((p for p in points if key in p["aggregate"]), key=lambda p: p["values"][first])
+            if not done:
+                continue
+            x = np.array([p["values"][first] for p in done], np.float64)
+            est = np.array([p["aggregate"][key]["estimate"] for p in done])
+            low = np.array([p["aggregate"][key]["low"] for p in done])
+            high = np.array([p["aggregate"][key]["high"] for p in done])
+            name = _point_label(dict(zip(others, rest, strict=True))) if others else "IQM, 95 % CI"
+            ax.errorbar(x, est, yerr=[est - low, high - est], color=f"C{index % 10}", marker="o",
+                        capsize=3, linewidth=1.2, label=name)  # fmt: skip
+        agg = (baseline or {}).get("aggregate", {}).get(key)
+        if agg is not None:
+            ax.axhspan(agg["low"], agg["high"], color="0.5", alpha=0.2, linewidth=0)
+            ax.axhline(agg["estimate"], color="0.3", linestyle="--", linewidth=1.2,
+                       label=f"baseline: {baseline['algo']}")  # fmt: skip
+        ax.set_xticks(xs, [_format_value(x) for x in xs], fontsize="small", rotation=45 if len(xs) > 5 else 0)
+        ax.minorticks_off()
+        ax.set_xlabel(first)
+        ax.set_title(label)
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="best", fontsize="x-small")
+    seeds = max((len(p["seeds"]) for p in sweep["points"]), default=0)
+    title = f"{summary['env']} / {summary['algo']} ({summary['preset']})"
+    figure.suptitle(f"{title}: IQM over up to {seeds} seeds per point")
     path = Path(path)
     figure.savefig(path, dpi=110)
     return path
