@@ -1,5 +1,5 @@
-"""The compiled part of a run: the run state, one chunk of ``log_interval`` transitions per seed as
-one ``lax.scan`` (vmapped over seeds), its per-seed report and health checks, and evaluation.
+"""The compiled part of a run: the run state, one chunk of ``log_interval`` transitions per member as
+one ``lax.scan`` (vmapped over members), its per-member report and health checks, and evaluation.
 
 Per seed (docs/algorithms.md §5, mapped to synchronous vector envs as §5.8 recommends):
 
@@ -16,23 +16,39 @@ Per seed (docs/algorithms.md §5, mapped to synchronous vector envs as §5.8 rec
   ``"bootstrap"`` the explicit layout keeps them with their true final observation.
 
 A *chunk* is ``log_interval / E`` vector steps inside one jitted ``lax.scan``; the chunk is
-``vmap``-ped over seeds and compiled once per configuration, with the run state donated. The
-global step counter enters unbatched, so warm-up and end-of-run gating are real ``lax.cond``s and
-cost nothing under ``vmap``. Between chunks the host loop (:mod:`xrl_jax.train.loop`) writes
-metrics, evaluates, checkpoints and draws the progress bar.
+``vmap``-ped over the run's *members* (sweep points x seeds; a plain run is a sweep of one point) and
+compiled once per configuration, with the run state donated. A member's swept values are traced
+leaves of its agent state (``AgentState.hparams``), so one program trains every point. The global
+step counter enters unbatched, so warm-up and end-of-run gating are real ``lax.cond``s and cost
+nothing under ``vmap``. Between chunks the host loop (:mod:`xrl_jax.train.loop`) writes metrics,
+evaluates, checkpoints and draws the progress bar.
+
+**Devices.** The member axis is spread over a one-axis device mesh (``"member"``) with
+``jax.shard_map`` rather than a sharded ``jit``: members never talk to each other, and shard_map
+makes that explicit. Each device runs exactly the one-device program on its block of members, so
+a member's numbers do not depend on the partitioner's choices (no resharding of the replay
+buffer's per-member gathers, no collectives it might insert), and they equal a one-device run's
+bit for bit when the per-device member count is the same. The only cross-member quantities are two
+explicit ``psum``s: whether any member's track feed needs a refill (a real branch, taken by all
+devices alike) and how many members are unhealthy (every process of a multi-host run learns that a
+member diverged, also one held by another process).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
-from xrl_jax.agents import Agent, AgentState, make_agent
+from xrl_jax.agents import Agent, AgentState, HyperParams, make_agent, make_hparams
 from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_add_packed, buffer_init, buffer_sample
 from xrl_jax.config import HOST_ONLY_FIELDS, TrainConfig
 from xrl_jax.train.episodes import (
@@ -91,16 +107,36 @@ class ChunkReport:
     metrics: dict
     has_data: dict
     health: ChunkHealth
+    unhealthy_members: jax.Array = 0  # over all devices and processes (replicated): > 0 stops the run
+
+
+MEMBER_AXIS = "member"
+
+
+def mesh_devices(count: int = 0) -> list:
+    """The devices a run spreads its members over: the first ``count`` devices of every process (0:
+    all of them), in the same order on every process."""
+    by_process: dict[int, list] = {}
+    for device in sorted(jax.devices(), key=lambda d: (d.process_index, d.id)):
+        by_process.setdefault(device.process_index, []).append(device)
+    local = len(by_process[jax.process_index()])
+    if count > local:
+        raise ValueError(f"--devices {count}: this process sees only {local} {jax.default_backend()} device(s)")
+    return [d for devices in by_process.values() for d in (devices[:count] if count else devices)]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Trainer:
-    """The compiled pieces of one configuration (build with :func:`make_train`).
+    """The compiled pieces of one configuration (build with :func:`make_train`), over a device mesh.
 
-    * ``init(base_seed, seed_indices) -> RunState`` with a leading seed axis (seed ``i`` of a run
-      uses ``fold_in(PRNGKey(base_seed), i)``, so a seed's stream does not depend on its group);
+    * ``init(base_seed, seed_indices, hparams=None) -> RunState`` with a leading member axis: member
+      ``j`` starts from ``fold_in(PRNGKey(base_seed), seed_indices[j])`` with hyper-parameters
+      ``hparams`` (a :class:`HyperParams` of per-member values; default: the config's), so a member's
+      stream depends only on its seed and its values, not on its group or the member count. The same
+      seed at two sweep points starts from the same weights and tracks (common random numbers: the
+      points differ by their values alone). The member count must be a multiple of the mesh size;
     * ``chunk(state, start_vector_step) -> (state, ChunkReport)``: ``log_interval`` transitions per
-      seed, the state donated; the report's values are per-seed scalars (leading seed axis);
+      member, the state donated; the report's values are per-member scalars;
     * ``evaluate(state) -> (eval_keys, per_episode)``: the §6.1 protocol on the fixed tracks.
 
     ``loss_names`` are the update's metrics (losses first) in the order that
@@ -112,39 +148,92 @@ class Trainer:
     env_params: Any
     eval_params: Any
     agent: Agent
-    init: Any
+    mesh: Mesh
+    init_members: Any  # (base_seed, seed_indices, hparams) -> RunState, sharded over the mesh
     chunk: Any
     evaluate: Any
     loss_names: tuple[str, ...] = ()
+    unsharded_init: Any = None  # the same without a mesh, for shapes
 
-    def abstract_state(self, num_seeds: int) -> RunState:
-        return jax.eval_shape(self.init, jnp.int32(0), jnp.arange(num_seeds, dtype=jnp.int32))
+    @property
+    def num_devices(self) -> int:
+        return int(self.mesh.devices.size)
+
+    @property
+    def member_sharding(self) -> NamedSharding:
+        return NamedSharding(self.mesh, P(MEMBER_AXIS))
+
+    def put_members(self, tree):
+        """Host arrays with a leading member axis as global arrays sharded over the mesh (every
+        process passes the whole arrays and keeps the rows of its own devices)."""
+        sharding = self.member_sharding
+
+        def put(x):
+            x = np.asarray(x)
+            return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+        return jax.tree.map(put, tree)
+
+    def default_hparams(self, num_members: int) -> HyperParams:
+        one = make_hparams(self.config.agent, self.agent.action_size)
+        return jax.tree.map(lambda x: np.full((num_members,), x, np.asarray(x).dtype), one)
+
+    def init(self, base_seed, seed_indices, hparams: HyperParams | None = None) -> RunState:
+        seeds = np.asarray(seed_indices, np.int32)
+        if seeds.shape[0] % self.num_devices:
+            raise ValueError(f"{seeds.shape[0]} members cannot be spread evenly over {self.num_devices} devices")
+        if hparams is None:
+            hparams = self.default_hparams(seeds.shape[0])
+        return self.init_members(np.int32(base_seed), *self.put_members((seeds, hparams)))
+
+    def abstract_state(self, num_members: int, sharded: bool = True) -> RunState:
+        """Shapes and dtypes of ``num_members`` members' state (nothing allocated); sharded over
+        the mesh (a restore target) when the count divides evenly."""
+        abstract = jax.eval_shape(
+            self.unsharded_init, jnp.int32(0), jnp.zeros(num_members, jnp.int32), self.default_hparams(num_members)
+        )
+        if not sharded or num_members % self.num_devices:
+            return abstract
+        sharding = self.member_sharding
+        return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), abstract)
 
 
-_TRAINER_CACHE: dict[TrainConfig, Trainer] = {}
+_TRAINER_CACHE: dict[tuple, Trainer] = {}
 
 
-def get_trainer(cfg: TrainConfig) -> Trainer:
-    """:func:`make_train` memoised on everything that changes the compiled code (not the seeds):
-    runs of the same configuration in one process share their compilations."""
+def get_trainer(cfg: TrainConfig, devices: list | None = None) -> Trainer:
+    """:func:`make_train` memoised on everything that changes the compiled code (not the seeds, not
+    the swept values) and on the devices: runs of the same configuration in one process share
+    their compilations."""
+    devices = mesh_devices(cfg.num_devices) if devices is None else list(devices)
     # Settings that only the host loop reads; the step count matters only for a partial last chunk.
     key = cfg.replace(
         seed=0,
         num_seeds=1,
+        sweep=(),
         **{name: TrainConfig.__dataclass_fields__[name].default for name in HOST_ONLY_FIELDS},
         eval_interval=cfg.log_interval,
         checkpoint_interval=cfg.log_interval,
         total_steps=cfg.total_steps if cfg.total_steps % cfg.log_interval else cfg.log_interval,
     )
-    if key not in _TRAINER_CACHE:
+    cache_key = (key, tuple(d.id for d in devices))
+    if cache_key not in _TRAINER_CACHE:
         if len(_TRAINER_CACHE) >= 4:
             _TRAINER_CACHE.pop(next(iter(_TRAINER_CACHE)))
-        _TRAINER_CACHE[key] = make_train(key)
-    return _TRAINER_CACHE[key]
+        _TRAINER_CACHE[cache_key] = make_train(key, devices=devices)
+    return _TRAINER_CACHE[cache_key]
 
 
-def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer:
-    """Build the agent, the vector env and the jitted init / chunk / evaluate functions for ``cfg``."""
+def member_hparams(cfg: TrainConfig, agent: Agent, members: list[int]) -> HyperParams:
+    """Each member's traced hyper-parameters (its sweep point's values), stacked on a leading axis."""
+    per_point = [make_hparams(cfg.point_agent(p), agent.action_size) for p in range(cfg.num_points)]
+    rows = [per_point[cfg.member_point_seed(m)[0]] for m in members]
+    return jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *rows)
+
+
+def make_train(cfg: TrainConfig, env_and_params: tuple | None = None, devices: list | None = None) -> Trainer:
+    """Build the agent, the vector env and the jitted init / chunk / evaluate functions for ``cfg``,
+    spread over ``devices`` (default: the first device only)."""
     from envs import track_feed
     from envs.core import vmap_env
     from xrl_jax import evaluate as evaluate_mod
@@ -172,7 +261,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
     def new_buffer(capacity):
         return buffer_init(obs_example, action_example, capacity, buffer_columns, layout=cfg.buffer_layout)
 
-    def init_one(base_seed, index):
+    def init_one(base_seed, index, hparams):
         key = jax.random.fold_in(jax.random.PRNGKey(base_seed), index)
         agent_key, env_key, run_key, eval_key = jax.random.split(key, 4)
         feed = None
@@ -184,7 +273,7 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         else:
             obs, env_state = venv.reset(env_key, params)
         return RunState(
-            agent=agent.init(agent_key, obs_example),
+            agent=agent.init(agent_key, obs_example, hparams),
             buffer=new_buffer(cfg.buffer_size),
             env_state=env_state,
             obs=obs,
@@ -413,27 +502,43 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None) -> Trainer
         key, sub = jax.random.split(state.eval_key)
         return key, evaluate_one(sub, state.agent)
 
-    init_jit = jax.jit(jax.vmap(init_one, in_axes=(None, 0)))
-
-    def init(base_seed, seed_indices):
-        # Committed to the device, as a state restored from a checkpoint is: jit keys its cache on
-        # committedness, so both then share one compiled chunk.
-        return jax.device_put(init_jit(base_seed, seed_indices), jax.devices()[0])
-
     def refill_feeds(feed):
-        """Generate tracks into every seed's free slots once some seed can take half a feed. The
-        condition is over all seeds (unbatched), so it is a real branch: chunks without a refill
-        generate nothing. Which track an episode gets does not depend on when refills happen
-        (envs/track_feed.py); a track costs ~3 ms on a CPU core."""
-        needed = jnp.any(track_feed.writable(feed, refill_count)[2][..., -1])  # room for all of them
+        """Generate tracks into every member's free slots once some member, on any device, can take
+        half a feed. The condition is the same on every device (a ``psum``), so it is a real branch:
+        chunks without a refill generate nothing. Which track an episode gets does not depend on when
+        refills happen (envs/track_feed.py); a track costs ~3 ms on a CPU core."""
+        room = jnp.any(track_feed.writable(feed, refill_count)[2][..., -1])  # room for all of them
+        needed = jax.lax.psum(room.astype(jnp.int32), MEMBER_AXIS) > 0
         return jax.lax.cond(needed, lambda f: track_feed.refill_feed(env, f, refill_count), lambda f: f, feed)
 
-    def chunk_all(state: RunState, start_vector_step):
+    def chunk_block(state: RunState, start_vector_step):
+        """One device's block of members."""
         if fresh:
             state = state.replace(feed=refill_feeds(state.feed))
-        return jax.vmap(chunk_one, in_axes=(0, None))(state, start_vector_step)
+        state, report = jax.vmap(chunk_one, in_axes=(0, None))(state, start_vector_step)
+        health = report.health
+        unhealthy = jnp.sum((health.first_nonfinite_step >= 0) | ~health.agent_finite, dtype=jnp.int32)
+        return state, report.replace(unhealthy_members=jax.lax.psum(unhealthy, MEMBER_AXIS))
 
-    chunk = jax.jit(chunk_all, donate_argnums=0)
-    evaluate = jax.jit(jax.vmap(evaluate_seed))
+    mesh = Mesh(np.array(devices if devices is not None else jax.devices()[:1]), (MEMBER_AXIS,))
+    members, replicated = P(MEMBER_AXIS), P()
+    # check_vma=False: the env and agent code is written for one member and mixes unbatched loop
+    # counters with per-member values; the type check would need casts throughout it, and the only
+    # cross-device values are the two psums above.
+    shard_map = functools.partial(jax.shard_map, mesh=mesh, check_vma=False)
+    init_block = jax.vmap(init_one, in_axes=(None, 0, 0))
+    init_members = jax.jit(
+        shard_map(init_block, in_specs=(replicated, members, members), out_specs=members)
+    )
+    report_specs = ChunkReport(metrics=members, has_data=members, health=members, unhealthy_members=replicated)
+    chunk = jax.jit(
+        shard_map(chunk_block, in_specs=(members, replicated), out_specs=(members, report_specs)),
+        donate_argnums=0,
+    )
+    evaluate = jax.jit(
+        shard_map(jax.vmap(evaluate_seed), in_specs=members, out_specs=members)
+    )
     loss_names = tuple(f"train/{k}" for k in _update_metric_order(metric_shapes))
-    return Trainer(cfg, env, params, eval_params, agent, init, chunk, evaluate, loss_names)
+    return Trainer(
+        cfg, env, params, eval_params, agent, mesh, init_members, chunk, evaluate, loss_names, init_block
+    )
