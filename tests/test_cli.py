@@ -351,7 +351,7 @@ def test_resume_refuses_a_run_whose_history_is_gone(run, capsys, tmp_path, monke
 def test_leftovers_of_a_failed_start_do_not_block_a_retry(run, capsys, tmp_path):
     out = tmp_path / "retry"
     status, _, err = call(run, capsys, *SMOKE, "--set", "memory_budget_gb=0.000001", "--out", str(out))
-    one_line_error(status, err, "one seed needs about")  # the failed memory check left a folder...
+    one_line_error(status, err, "one member needs about")  # the failed memory check left a folder...
     (out / ".config.json.tmp4242").write_text("{half")  # ...and a killed atomic write a temporary file
     status, stdout, err = call(run, capsys, *SMOKE, "--out", str(out))
     assert status == 0 and "final return" in stdout, err

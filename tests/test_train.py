@@ -164,7 +164,7 @@ def test_memory_plan_groups_seeds_or_refuses(smoke_trainer):
     assert all(len(g) <= 2 for g in plan["groups"]) and sum(map(len, plan["groups"])) == 5
     assert T.plan_memory(trainer, five, budget_bytes=10**15)["groups"] == [[0, 1, 2, 3, 4]]
     assert len(T.plan_memory(trainer, five.replace(max_group_size=2), budget_bytes=10**15)["groups"]) == 3
-    with pytest.raises(MemoryPlanError, match="one seed needs about"):
+    with pytest.raises(MemoryPlanError, match="one member needs about"):
         T.plan_memory(trainer, five, budget_bytes=sizes["total"] // 2)
 
 

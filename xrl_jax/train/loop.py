@@ -1,12 +1,15 @@
-"""The host loop of a run (:func:`train`): seed groups one after another, chunk after chunk, and
+"""The host loop of a run (:func:`train`): member groups one after another, chunk after chunk, and
 between chunks the metric lines, the health check, evaluation, checkpoints, the progress bar, the
-cost estimate and clean stops."""
+cost estimate and clean stops. A member is one seed at one sweep point; a plain run's members are
+its seeds. In a run of several processes (:mod:`xrl_jax.train.hosts`) each process writes the
+records of the members its devices hold."""
 
 from __future__ import annotations
 
 import functools
 import hashlib
 import json
+import signal
 import sys
 import time
 from pathlib import Path
@@ -20,14 +23,17 @@ from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError
 from xrl_jax.config import HOST_ONLY_FIELDS, ConfigError, TrainConfig
 from xrl_jax.interrupts import RunInterrupted, StopController
 from xrl_jax.resources import backend_summary, disk_free_bytes, format_bytes, format_duration
-from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, tree_all_finite
-from xrl_jax.train.memory import plan_memory, tree_bytes
+from xrl_jax.train import hosts
+from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, member_hparams, tree_all_finite
+from xrl_jax.train.memory import padded_members, plan_memory, tree_bytes
 from xrl_jax.train.run_folder import (
     RunLock,
     append_lines,
     check_history,
     encode_metric,
     is_disk_full,
+    member_fields,
+    member_stem,
     remove_leftovers,
     run_paths,
     truncate_lines,
@@ -69,16 +75,19 @@ def _progress_bar(total: int, initial: int, enabled: bool):
     )
 
 
-def _metric_lines(step: int, seeds: list[int], report: ChunkReport) -> list[tuple[int, dict]]:
-    """One metrics line per seed: ``null`` where an average has no data yet, non-finite values as
-    the strings "nan"/"inf"/"-inf" (see :func:`xrl_jax.train.run_folder.encode_metric`)."""
+def _metric_lines(
+    cfg: TrainConfig, step: int, members: list[int], rows: list[int], report: ChunkReport
+) -> list[tuple[int, dict]]:
+    """One metrics line per member (of ``rows``, the group's rows this process holds): ``null`` where
+    an average has no data yet, non-finite values as the strings "nan"/"inf"/"-inf" (see
+    :func:`xrl_jax.train.run_folder.encode_metric`)."""
     lines = []
-    for row, seed in enumerate(seeds):
-        line = {"step": step, "seed": seed}
+    for row in rows:
+        line = {"step": step, **member_fields(cfg, members[row])}
         for name, values in report.metrics.items():
             present = report.has_data.get(name)
             line[name] = encode_metric(values[row]) if present is None or present[row] else None
-        lines.append((seed, line))
+        lines.append((members[row], line))
     return lines
 
 
@@ -91,14 +100,24 @@ def _first_nonfinite_leaf(tree) -> str:
 
 
 def divergence_message(
-    report: ChunkReport, seeds: list[int], chunk_end: int, loss_names: tuple[str, ...], agent_of_row
+    report: ChunkReport,
+    seeds: list,
+    chunk_end: int,
+    loss_names: tuple[str, ...],
+    agent_of_row,
+    rows: list[int] | None = None,
 ) -> str | None:
-    """None when every seed of the chunk is healthy, else one line naming the first seed to go
-    non-finite, the step and the quantity (``agent_of_row(row)`` gives that seed's agent state)."""
+    """None when every member of the chunk is healthy, else one line naming the first member to go
+    non-finite (``seeds[row]``: its name), the step and the quantity (``agent_of_row(row)`` gives
+    that member's agent state). Only ``rows`` (default: all) are read; when none of them diverged
+    but ``report.unhealthy_members`` says that a member of another process did, the line says so."""
     health = report.health
     loss_step = np.asarray(health.first_nonfinite_step)
-    bad_rows = [r for r in range(len(seeds)) if loss_step[r] >= 0 or not health.agent_finite[r]]
+    rows = range(len(seeds)) if rows is None else rows
+    bad_rows = [r for r in rows if loss_step[r] >= 0 or not health.agent_finite[r]]
     if not bad_rows:
+        if int(np.asarray(report.unhealthy_members)) > 0:
+            return f"a member held by another process diverged by step {chunk_end} (its process's log names it)"
         return None
     first_step = {r: int(loss_step[r]) if loss_step[r] >= 0 else chunk_end for r in bad_rows}
     row = min(bad_rows, key=lambda r: (first_step[r], r))
@@ -108,8 +127,8 @@ def divergence_message(
     else:
         what = f"the agent's {_first_nonfinite_leaf(agent_of_row(row))} became non-finite"
     others = len(bad_rows) - 1
-    also = f" ({others} other seed{'s' if others > 1 else ''} too)" if others else ""
-    return f"seed {seeds[row]} diverged at step {first_step[row]}{also}: {what}"
+    also = f" ({others} other{'s' if others > 1 else ''} too)" if others else ""
+    return f"{seeds[row]} diverged at step {first_step[row]}{also}: {what}"
 
 
 def _expected_rows(cfg: TrainConfig, next_chunk: int) -> tuple[list[int], list[int]]:
@@ -178,10 +197,11 @@ class RunClock:
 def cost_lines(cfg: TrainConfig, elapsed_s: float, remaining_s: float, backend: str) -> list[str]:
     """The estimate of the whole run's time, with a warning and the alternatives beyond a day."""
     total = elapsed_s + remaining_s
-    steps = cfg.num_seeds * cfg.total_steps
+    steps = cfg.num_members * cfg.total_steps
     finish = time.strftime("%a %H:%M", time.localtime(time.time() + remaining_s))
+    points = f" x {cfg.num_points} sweep points" if cfg.num_points > 1 else ""
     lines = [
-        f"estimate: the whole run ({cfg.num_seeds} seed(s) x {cfg.total_steps:,} steps) takes "
+        f"estimate: the whole run ({cfg.num_seeds} seed(s){points} x {cfg.total_steps:,} steps) takes "
         f"~{format_duration(total)} on {backend} ({steps / max(total, 1e-9):,.0f} steps/s); "
         f"done around {finish}"
     ]
@@ -229,8 +249,10 @@ def train(
     if warn is None:
         warn = functools.partial(print, file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
-    with RunLock(out):
-        remove_leftovers(out)
+    with RunLock(out, jax.process_index()):
+        if hosts.is_primary():
+            remove_leftovers(out)
+        hosts.sync("xrl-jax: run folder ready")
         try:
             return _HostLoop(cfg, out, trainer, log, warn, progress, stop).run(resume, stop_after_chunks)
         except Exception as err:  # orbax reports a full disk as ValueError("RESOURCE_EXHAUSTED ...")
@@ -247,7 +269,7 @@ class _StopAfterChunks(Exception):
 
 
 class _HostLoop:
-    """The host side of :func:`train`: seed groups one after another, chunk after chunk, and
+    """The host side of :func:`train`: member groups one after another, chunk after chunk, and
     between chunks the metric lines, the health check, evaluation and checkpoints."""
 
     def __init__(self, cfg: TrainConfig, out: Path, trainer: Trainer | None, log, warn, progress: bool, stop):
@@ -266,7 +288,8 @@ class _HostLoop:
         self.timing = {"compile_s": 0.0, "train_s": 0.0, "eval_s": 0.0, "checkpoint_s": 0.0, "env_steps": 0}
         self.fingerprint = config_fingerprint(cfg)
         self.chunks_left: int | None = None
-        self.saved_step = 0  # the newest checkpoint of the running seed group
+        self.saved_step = 0  # the newest checkpoint of the running member group
+        self.rows: list[int] = []  # the running group's rows that this process holds and writes
 
     # ---- the run ------------------------------------------------------------------------------
     def run(self, resume: bool, stop_after_chunks: int | None) -> dict[str, Any] | None:
@@ -276,8 +299,8 @@ class _HostLoop:
         self.clock = RunClock(self.cfg, len(self.groups))
         self.done_steps = 0
         try:
-            for group_index, seeds in enumerate(self.groups):
-                self._run_group(group_index, seeds, resume)
+            for group_index, members in enumerate(self.groups):
+                self._run_group(group_index, members, resume)
         except _StopAfterChunks:
             return None
         finally:
@@ -290,23 +313,44 @@ class _HostLoop:
     def _plan(self, resume: bool) -> dict[str, Any]:
         cfg, paths, log = self.cfg, self.paths, self.log
         plan = plan_memory(self.trainer, cfg)
+        if jax.process_count() > 1:  # every process must run the same groups: the smallest plan wins
+            from jax.experimental import multihost_utils
+
+            smallest = int(np.min(multihost_utils.process_allgather(np.array([len(plan["groups"][0])]))))
+            if smallest < len(plan["groups"][0]):
+                plan = plan_memory(self.trainer, cfg.replace(max_group_size=smallest))
+        devices = self.trainer.num_devices
         if resume and paths["plan"].exists():  # keep the grouping the checkpoints were made with
-            plan["groups"] = json.loads(paths["plan"].read_text())["groups"]
-        else:
+            stored = json.loads(paths["plan"].read_text())
+            plan["groups"] = stored["groups"]
+            padded = [len(padded_members(g, devices)) for g in stored["groups"]]
+            was = stored.get("devices", 1)
+            if padded != [len(padded_members(g, was)) for g in stored["groups"]]:
+                raise ConfigError(
+                    f"{self.out} was trained on {was} device(s) in all; its checkpoints hold rows for that "
+                    f"count, so resume it on {was} device(s) (--devices, or as many processes as before)"
+                )
+        elif hosts.is_primary():
             write_atomic(paths["plan"], json.dumps(plan, indent=2, sort_keys=True) + "\n")
         groups, per_seed = plan["groups"], plan["per_seed_bytes"]
         total, buffer = format_bytes(per_seed["total"]), format_bytes(per_seed["buffer"])
         budget = format_bytes(plan["budget_bytes"])
-        log(f"memory: ~{total} per seed (buffer {buffer}), budget {budget} ({plan['budget_source']})")
+        what = "seed" if cfg.num_points == 1 else "member (a seed at a sweep point)"
+        log(f"memory: ~{total} per {what} (buffer {buffer}), budget {budget} per device ({plan['budget_source']})")
+        if devices > 1 or jax.process_count() > 1:
+            per_device = -(-len(groups[0]) // devices)
+            log(f"devices: {cfg.num_members} members over {devices} devices in {jax.process_count()} "
+                f"process(es), up to {per_device} per device")  # fmt: skip
         if len(groups) > 1:
-            log(f"memory: {cfg.num_seeds} seeds do not fit at once; running {len(groups)} groups of up to "
-                f"{len(groups[0])} seeds one after another")  # fmt: skip
+            log(f"memory: {cfg.num_members} members do not fit at once; running {len(groups)} groups of up to "
+                f"{len(groups[0])} one after another")  # fmt: skip
         # Two checkpoints kept per group, plus the one being written.
         needed = 3 * len(groups[0]) * (per_seed["buffer"] + per_seed["agent"] + per_seed["env"])
+        needed //= jax.process_count()  # each process writes its members' share
         free = disk_free_bytes(self.out)
         if free < needed:
             self.warn(f"warning: {format_bytes(free)} free on the disk of {self.out}, but the checkpoints "
-                      f"of a seed group need up to {format_bytes(needed)}")  # fmt: skip
+                      f"of a member group need up to {format_bytes(needed)}")  # fmt: skip
         return plan
 
     def _above_bar(self, write, line: str) -> None:
@@ -320,42 +364,58 @@ class _HostLoop:
 
     def _kept(self, step: int, group_index: int) -> str:
         """What a resume would continue from, in words."""
-        where = f" (seed group {group_index + 1} of {len(self.groups)})" if len(self.groups) > 1 else ""
+        where = f" (member group {group_index + 1} of {len(self.groups)})" if len(self.groups) > 1 else ""
         if step <= 0:
             return f"nothing has been checkpointed yet{where}, so a resume starts this group afresh"
         return f"the checkpoint at step {step:,} of {self.cfg.total_steps:,} per seed is kept{where}"
 
-    def _run_group(self, group_index: int, seeds: list[int], resume: bool) -> None:
-        cfg, paths, trainer = self.cfg, self.paths, self.trainer
-        ckpt = Checkpointer(paths["checkpoints"] / f"group_{group_index}")
+    def _member_name(self, member: int) -> str:
+        point, seed = self.cfg.member_point_seed(member)
+        if self.cfg.num_points == 1:
+            return f"seed {seed}"
+        values = ", ".join(f"{k}={v:g}" for k, v in self.cfg.sweep_points[point].items())
+        return f"seed {seed} at sweep point {point} ({values})"
+
+    def _files(self, member: int) -> tuple[Path, Path]:
+        stem = member_stem(self.cfg, member)
+        return self.paths["metrics"] / f"{stem}.jsonl", self.paths["eval"] / f"{stem}.jsonl"
+
+    def _run_group(self, group_index: int, members: list[int], resume: bool) -> None:
+        """Train one group: its members padded to a multiple of the device count (rows), of which
+        this process writes the rows its devices hold (``self.rows``)."""
+        cfg, trainer = self.cfg, self.trainer
+        rows = padded_members(members, trainer.num_devices)
+        self.rows = [r for r in hosts.local_rows(trainer.member_sharding, len(rows)) if r < len(members)]
+        mine = [members[r] for r in self.rows]
+        ckpt = Checkpointer(self.paths["checkpoints"] / f"group_{group_index}")
         try:
             state, next_chunk = _restore_group(
-                cfg, trainer, ckpt, seeds, group_index, self.fingerprint, resume, self.log, self.warn
+                cfg, trainer, ckpt, members, len(rows), group_index, self.fingerprint, resume, self.log, self.warn
             )
             resumed_step = cfg.chunk_end_step(next_chunk - 1) if next_chunk else 0
             self.saved_step = resumed_step
             metric_steps, eval_steps = _expected_rows(cfg, next_chunk)
-            for seed in seeds:  # what the checkpoint continues must still be on disk
-                check_history(paths["metrics"] / f"seed_{seed}.jsonl", metric_steps, "metric")
-                check_history(paths["eval"] / f"seed_{seed}.jsonl", eval_steps, "evaluation")
-            for seed in seeds:  # drop anything written after the checkpoint (or everything, when fresh)
-                truncate_lines(paths["metrics"] / f"seed_{seed}.jsonl", resumed_step)
-                truncate_lines(paths["eval"] / f"seed_{seed}.jsonl", resumed_step)
-            self.done_steps += resumed_step * len(seeds)
+            for member in mine:  # what the checkpoint continues must still be on disk
+                metrics, evals = self._files(member)
+                check_history(metrics, metric_steps, "metric")
+                check_history(evals, eval_steps, "evaluation")
+            for member in mine:  # drop anything written after the checkpoint (or everything, when fresh)
+                for path in self._files(member):
+                    truncate_lines(path, resumed_step)
+            self.done_steps += resumed_step * len(members)
             if self.stop is not None:
                 self.stop.keep(self._kept(resumed_step, group_index))
             if next_chunk >= cfg.num_chunks:
                 return
             if state is None:
-                state = trainer.init(jnp.asarray(cfg.seed, jnp.int32), jnp.asarray(seeds, jnp.int32))
-            # Committed to the device like a restored state, so both hit the same compiled chunk.
-            state = jax.device_put(state, jax.devices()[0])
+                seeds = [cfg.member_point_seed(m)[1] for m in rows]
+                state = trainer.init(cfg.seed, seeds, member_hparams(cfg, trainer.agent, rows))
             self._compile(state, next_chunk)
             if self.bar is None:
-                self.bar = _progress_bar(cfg.total_steps * cfg.num_seeds, self.done_steps, self.progress)
+                self.bar = _progress_bar(cfg.total_steps * cfg.num_members, self.done_steps, self.progress)
             self.clock.last_save = time.monotonic()
             for chunk_index in range(next_chunk, cfg.num_chunks):
-                state = self._chunk(state, ckpt, group_index, seeds, chunk_index)
+                state = self._chunk(state, ckpt, group_index, members, chunk_index)
         finally:
             ckpt.close()
 
@@ -363,13 +423,13 @@ class _HostLoop:
         """Compile the chunk ahead of its first call, so that chunk timings are execution alone."""
         tic = time.perf_counter()
         self.log("compiling the training chunk ...")
-        start = jnp.asarray(next_chunk * self.cfg.chunk_vector_steps, jnp.int32)
+        start = np.int32(next_chunk * self.cfg.chunk_vector_steps)
         self.trainer.chunk.lower(state, start).compile()  # jit reuses this executable
         seconds = time.perf_counter() - tic
         self.timing["compile_s"] += seconds
         self.log(f"compiled in {seconds:.0f} s")
 
-    def _chunk(self, state, ckpt, group_index, seeds, chunk_index) -> RunState:
+    def _chunk(self, state, ckpt, group_index, members, chunk_index) -> RunState:
         """Run one chunk and everything the host does after it (``self.saved_step`` follows the
         newest checkpoint of the group)."""
         cfg, paths, stop, clock = self.cfg, self.paths, self.stop, self.clock
@@ -380,22 +440,24 @@ class _HostLoop:
         if stop is not None:
             stop.training(clock.expected_chunk_s())
         tic = time.perf_counter()
-        start = jnp.asarray(chunk_index * cfg.chunk_vector_steps, jnp.int32)
+        start = np.int32(chunk_index * cfg.chunk_vector_steps)
         state, report = self.trainer.chunk(state, start)
-        report = jax.device_get(report)
+        report = hosts.fetch(report)
         elapsed = time.perf_counter() - tic
         if stop is not None:  # the host work until the next chunk: short, and known once measured
             stop.training((clock.eval_s or 0.0) + (clock.save_s or 0.0))
         step = cfg.chunk_end_step(chunk_index)
-        collected = (step - (cfg.chunk_end_step(chunk_index - 1) if chunk_index else 0)) * len(seeds)
+        collected = (step - (cfg.chunk_end_step(chunk_index - 1) if chunk_index else 0)) * len(members)
         self.timing["train_s"] += elapsed
         self.timing["env_steps"] += collected
-        for seed, line in _metric_lines(step, seeds, report):
-            append_lines(paths["metrics"] / f"seed_{seed}.jsonl", [line])
-        def agent_of_row(row):
-            return jax.tree.map(lambda x: x[row], state.agent)
+        for member, line in _metric_lines(cfg, step, members, self.rows, report):
+            append_lines(self._files(member)[0], [line])
 
-        diverged = divergence_message(report, seeds, step, self.trainer.loss_names, agent_of_row)
+        def agent_of_row(row):
+            return jax.tree.map(lambda x: x[row], hosts.fetch(state.agent))
+
+        names = [self._member_name(m) for m in members]
+        diverged = divergence_message(report, names, step, self.trainer.loss_names, agent_of_row, self.rows)
         if diverged:
             kept = self._kept(self.saved_step, group_index)
             raise DivergenceError(
@@ -403,21 +465,23 @@ class _HostLoop:
                 "other settings, e.g. lower actor_lr and critic_lr)"
             )
         if cfg.evaluates_at(step):
-            state = self._evaluate(state, seeds, step)
-        if cfg.checkpoints_at(step) or clock.checkpoint_due_by_time():
-            self._save(ckpt, state, seeds, chunk_index, step, group_index)
+            state = self._evaluate(state, members, step)
+        if cfg.checkpoints_at(step) or self._agreed(clock.checkpoint_due_by_time()):
+            self._save(ckpt, state, members, chunk_index, step, group_index)
         self.done_steps += collected
         if self.bar is not None:
             name = "rollout/avg_episode_return"
-            returns = np.where(report.has_data[name], report.metrics[name], np.nan)
+            returns = np.where(report.has_data[name], report.metrics[name], np.nan)[self.rows]
             shown = f" return {np.nanmean(returns):.2f}" if np.any(np.isfinite(returns)) else ""
             self.bar.set_postfix_str(f"group {group_index + 1}/{len(self.groups)}{shown}", refresh=False)
             self.bar.update(collected)
-        append_lines(paths["timing"], [{"group": group_index, "step": step, "seconds": elapsed}])
-        if stop is not None and stop.requested is not None:  # asked during this chunk or after it
+        if hosts.is_primary():
+            append_lines(paths["timing"], [{"group": group_index, "step": step, "seconds": elapsed}])
+        if self._agreed(stop is not None and stop.requested is not None):  # asked during or after this chunk
             if self.saved_step != step:
-                self._save(ckpt, state, seeds, chunk_index, step, group_index)
-            raise RunInterrupted(stop.requested, self._kept(self.saved_step, group_index))
+                self._save(ckpt, state, members, chunk_index, step, group_index)
+            signum = stop.requested if stop is not None and stop.requested is not None else signal.SIGTERM
+            raise RunInterrupted(signum, self._kept(self.saved_step, group_index))
         clock.observe_chunk(chunk_index, elapsed)
         if not clock.estimated and clock.chunk_s is not None:
             clock.estimated = True
@@ -429,22 +493,32 @@ class _HostLoop:
                 self._above_bar(self.warn, line)
         return state
 
-    def _evaluate(self, state: RunState, seeds: list[int], step: int) -> RunState:
+    def _evaluate(self, state: RunState, members: list[int], step: int) -> RunState:
         from xrl_jax import evaluate as evaluate_mod
 
         tic = time.perf_counter()
         eval_keys, episodes = self.trainer.evaluate(state)
         state = state.replace(eval_key=eval_keys)
-        episodes = jax.device_get(episodes)
+        episodes = hosts.fetch(episodes)
         self.clock.eval_s = time.perf_counter() - tic
         self.timing["eval_s"] += self.clock.eval_s
-        for row, seed in enumerate(seeds):
+        for row in self.rows:
             per_episode = jax.tree.map(lambda x, r=row: np.asarray(x[r]), episodes)
-            line = {"step": step, "seed": seed, **evaluate_mod.summarize_episodes(per_episode)}
-            append_lines(self.paths["eval"] / f"seed_{seed}.jsonl", [line])
+            fields = member_fields(self.cfg, members[row])
+            line = {"step": step, **fields, **evaluate_mod.summarize_episodes(per_episode)}
+            append_lines(self._files(members[row])[1], [line])
         return state
 
-    def _save(self, ckpt, state, seeds, chunk_index: int, step: int, group_index: int) -> None:
+    def _agreed(self, wish: bool) -> bool:
+        """True on every process when it is true on any (a stop signal or a checkpoint by wall time
+        must be acted on by all processes at the same chunk, since checkpoints are collective)."""
+        if jax.process_count() == 1:
+            return bool(wish)
+        from jax.experimental import multihost_utils
+
+        return bool(np.any(multihost_utils.process_allgather(np.array([wish]))))
+
+    def _save(self, ckpt, state, members, chunk_index: int, step: int, group_index: int) -> None:
         # A checkpoint can take up to the state's raw size on disk (compression helps only while the
         # buffer is empty). Checked first, because orbax reports a disk that fills during the save
         # from several threads at once.
@@ -456,7 +530,7 @@ class _HostLoop:
                 f"space and continue with --resume {self.out}"
             )
         tic = time.perf_counter()
-        meta = {"next_chunk": chunk_index + 1, "seeds": seeds, "step": step, "config": self.fingerprint}
+        meta = {"next_chunk": chunk_index + 1, "members": members, "step": step, "config": self.fingerprint}
         ckpt.save(step, state, meta)
         self.clock.saved(time.perf_counter() - tic)
         self.timing["checkpoint_s"] += self.clock.save_s
@@ -470,19 +544,25 @@ class _HostLoop:
         timing = self.timing
         timing["wall_s"] = time.perf_counter() - self.start_time
         timing["env_steps_per_s"] = timing["env_steps"] / timing["train_s"] if timing["train_s"] > 0 else None
+        hosts.sync("xrl-jax: all records written")  # every process's members are in their files
         summary = evaluate_mod.summarize_run(self.out, self.cfg)
         summary["timing_this_session"] = timing
         summary["memory_plan"] = {k: v for k, v in self.plan.items() if k != "groups"} | {
-            "groups": len(self.groups)
+            "groups": len(self.groups),
+            "processes": jax.process_count(),
         }
-        write_atomic(self.paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
-        if summary["curve"]:
-            evaluate_mod.plot_learning_curve(summary, self.paths["curve"])
+        if hosts.is_primary():
+            write_atomic(self.paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
+            if summary["curve"] or summary.get("sweep"):
+                evaluate_mod.plot_learning_curve(summary, self.paths["curve"])
+            if summary.get("sweep"):
+                evaluate_mod.plot_sweep(summary, self.paths["sweep"])
         return summary
 
 
-def _restore_group(cfg, trainer, ckpt, seeds, group_index, fingerprint, resume, log, warn):
-    """``(state or None, next_chunk)`` of a seed group: its newest good checkpoint when resuming."""
+def _restore_group(cfg, trainer, ckpt, members, num_rows, group_index, fingerprint, resume, log, warn):
+    """``(state or None, next_chunk)`` of a member group (``num_rows`` rows with the padding): its
+    newest good checkpoint when resuming."""
     if not resume or ckpt.latest_step() is None:
         return None, 0
     try:
@@ -494,16 +574,33 @@ def _restore_group(cfg, trainer, ckpt, seeds, group_index, fingerprint, resume, 
             f"checkpoint group {group_index} in {ckpt.directory.parent} was written by another "
             "configuration than config.json describes; start a new run with --out"
         )
-    if meta is not None and meta.get("seeds") != seeds:
-        raise ConfigError(f"checkpoint group {group_index} holds seeds {meta.get('seeds')}, expected {seeds}")
+    if meta is not None and _stored_members(meta) != members:
+        raise ConfigError(
+            f"checkpoint group {group_index} holds members {_stored_members(meta)}, expected {members}"
+        )
 
     def check(state, meta) -> str | None:
-        if meta.get("config") != fingerprint or meta.get("seeds") != seeds:
-            return "it belongs to another configuration or seed group"
-        if not bool(tree_all_finite(state.agent)):
-            return f"the agent's {_first_nonfinite_leaf(state.agent)} is not finite"
+        if meta.get("config") != fingerprint or _stored_members(meta) != members:
+            return "it belongs to another configuration or member group"
+        if not all_finite(state.agent):
+            return f"the agent's {_first_nonfinite_leaf(hosts.fetch(state.agent))} is not finite"
         return None
 
-    state, meta = ckpt.restore_newest_good(trainer.abstract_state(len(seeds)), check, warn)
-    log(f"resuming seed group {group_index + 1} from its checkpoint at step {meta['step']:,}")
+    state, meta = ckpt.restore_newest_good(trainer.abstract_state(num_rows), check, warn)
+    log(f"resuming member group {group_index + 1} from its checkpoint at step {meta['step']:,}")
     return state, int(meta["next_chunk"])
+
+
+def _stored_members(meta: dict) -> list[int] | None:
+    return meta.get("members", meta.get("seeds"))  # runs before sweeps stored their seeds
+
+
+def all_finite(tree) -> bool:
+    """Whether every float leaf of a (global) pytree is finite, the same answer on every process."""
+    if jax.process_count() == 1:
+        return bool(tree_all_finite(tree))
+    from jax.experimental import multihost_utils
+
+    local = bool(np.all([np.all(np.isfinite(x)) for x in jax.tree.leaves(hosts.fetch(tree))
+                         if np.issubdtype(x.dtype, np.floating)]))  # fmt: skip
+    return bool(np.all(multihost_utils.process_allgather(np.array([local]))))

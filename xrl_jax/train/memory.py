@@ -1,5 +1,6 @@
-"""Memory planning: how many bytes a seed needs and how many seeds fit at once (the rest run in
-groups, one after another)."""
+"""Memory planning: how many bytes a member (one seed at one sweep point) needs and how many fit on
+each device at once; the members of a run are spread over the devices, and what does not fit runs
+in groups, one after another."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ if TYPE_CHECKING:
 
 
 class MemoryPlanError(RuntimeError):
-    """Even one seed does not fit the memory budget."""
+    """Even one member does not fit a device's memory budget."""
 
 
 
@@ -28,24 +29,28 @@ def tree_bytes(tree) -> int:
     return int(sum(math.prod(x.shape) * jnp.dtype(x.dtype).itemsize for x in leaves))
 
 
-def device_memory_bytes() -> tuple[int, str]:
-    """Usable memory of the default device: the allocator's limit on accelerators; on CPU the
-    available RAM, or less where a container's memory limit leaves less."""
-    device = jax.devices()[0]
+def device_memory_bytes(devices_on_host: int = 1) -> tuple[int, str]:
+    """Usable memory of one device: the allocator's limit on accelerators; on CPU the available RAM
+    (or less where a container's memory limit leaves less), shared by the ``devices_on_host`` CPU
+    devices of this process."""
+    device = jax.local_devices()[0]
     try:
         stats = device.memory_stats() or {}
     except Exception:
         stats = {}
     if stats.get("bytes_limit"):
         return int(stats["bytes_limit"]), f"{device.device_kind} memory"
-    return host_memory_available()
+    available, source = host_memory_available()
+    if devices_on_host > 1:
+        return available // devices_on_host, f"{source} / {devices_on_host} CPU devices"
+    return available, source
 
 
 def estimate_seed_bytes(trainer: Trainer) -> dict[str, int]:
-    """Device bytes one seed needs: exact sizes of its state (``eval_shape``, nothing allocated)
+    """Device bytes one member needs: exact sizes of its state (``eval_shape``, nothing allocated)
     plus an estimate of the update's and evaluation's temporary arrays."""
     cfg = trainer.config
-    abstract = trainer.abstract_state(1)
+    abstract = trainer.abstract_state(1, sharded=False)
     obs = trainer.agent.obs_shape
     objects = obs.num_objects * cfg.agent.components_per_object
     a = cfg.agent
@@ -71,16 +76,22 @@ def estimate_seed_bytes(trainer: Trainer) -> dict[str, int]:
 def plan_memory(
     trainer: Trainer, cfg: TrainConfig | None = None, budget_bytes: int | None = None
 ) -> dict[str, Any]:
-    """Seed groups of ``cfg`` (default: the trainer's) that fit the budget.
+    """Member groups of ``cfg`` (default: the trainer's) that fit, ``budget_bytes`` (or
+    ``memory_budget_gb``, or 90 % of the device's memory) being each device's share.
 
-    Raises :class:`MemoryPlanError` if one seed does not fit."""
+    A group holds at most as many members as fit on one device times the mesh's devices; the
+    groups are balanced, and each runs padded to a multiple of the device count (see
+    :func:`padded_members`). Raises :class:`MemoryPlanError` if one member does not fit a device.
+    """
     cfg = trainer.config if cfg is None else cfg
     sizes = estimate_seed_bytes(trainer)
+    devices = trainer.num_devices
     if budget_bytes is None:
         if cfg.memory_budget_gb > 0:
-            budget_bytes, source = int(cfg.memory_budget_gb * 1e9), "memory_budget_gb"
+            budget_bytes, source = int(cfg.memory_budget_gb * 1e9), "memory_budget_gb per device"
         else:
-            available, source = device_memory_bytes()
+            local = sum(d.process_index == jax.process_index() for d in trainer.mesh.devices.flat)
+            available, source = device_memory_bytes(local)
             budget_bytes = int(0.9 * available)
     else:
         source = "given"
@@ -88,14 +99,27 @@ def plan_memory(
     fit = (budget_bytes - shared) // max(sizes["total"], 1)
     if fit < 1:
         raise MemoryPlanError(
-            f"one seed needs about {format_bytes(sizes['total'])} (buffer {format_bytes(sizes['buffer'])}) "
-            f"but the budget ({source}) is {format_bytes(budget_bytes)}; "
+            f"one member needs about {format_bytes(sizes['total'])} (buffer {format_bytes(sizes['buffer'])}) "
+            f"but a device's budget ({source}) is {format_bytes(budget_bytes)}; "
             "reduce buffer_size or the network widths with --set"
         )
-    group = min(cfg.num_seeds, int(fit))
+    members = cfg.num_members
+    group = min(members, int(fit) * devices)
     if cfg.max_group_size:
         group = min(group, cfg.max_group_size)
-    num_groups = -(-cfg.num_seeds // group)
-    group = -(-cfg.num_seeds // num_groups)  # balance the groups
-    groups = [list(range(g * group, min((g + 1) * group, cfg.num_seeds))) for g in range(num_groups)]
-    return {"per_seed_bytes": sizes, "budget_bytes": budget_bytes, "budget_source": source, "groups": groups}
+    num_groups = -(-members // group)
+    group = -(-members // num_groups)  # balance the groups
+    groups = [list(range(g * group, min((g + 1) * group, members))) for g in range(num_groups)]
+    return {
+        "per_seed_bytes": sizes,
+        "budget_bytes": budget_bytes,
+        "budget_source": source,
+        "devices": devices,
+        "groups": groups,
+    }
+
+
+def padded_members(members: list[int], devices: int) -> list[int]:
+    """``members`` repeated at the end up to a multiple of ``devices``: every device holds the same
+    number of rows. The repeats train as their originals do and are never written."""
+    return members + [members[-1]] * (-len(members) % devices)

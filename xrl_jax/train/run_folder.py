@@ -38,6 +38,7 @@ def run_paths(out: Path) -> dict[str, Path]:
         "checkpoints": out / "checkpoints",
         "summary": out / "summary.json",
         "curve": out / "learning_curve.png",
+        "sweep": out / "sweep.png",
         "timing": out / "timing.jsonl",
     }
 
@@ -154,8 +155,10 @@ class RunLock:
 
     _held: ClassVar[dict[Path, int]] = {}  # lock files this process holds, with their nesting depth
 
-    def __init__(self, folder: str | Path):
-        self.path = (Path(folder) / LOCK_NAME).absolute()
+    def __init__(self, folder: str | Path, process: int = 0):
+        # The processes of a multi-host run share the folder; each holds a lock of its own.
+        name = LOCK_NAME if process == 0 else f"{LOCK_NAME}.process_{process}"
+        self.path = (Path(folder) / name).absolute()
         self._file = None
         self._nested = False
 
@@ -215,7 +218,8 @@ def holds_results(folder: Path) -> bool:
     paths = run_paths(folder)
     startup = {paths["config"].name, paths["plan"].name, LOCK_NAME}
     for entry in folder.iterdir():
-        if entry.name in startup or (entry.name.startswith(".") and TEMP_MARK in entry.name):
+        lock = entry.name.startswith(f"{LOCK_NAME}.process_")
+        if entry.name in startup or lock or (entry.name.startswith(".") and TEMP_MARK in entry.name):
             continue
         if entry.is_dir() and entry.name in ("metrics", "eval", "checkpoints"):
             if any(p.is_file() and p.stat().st_size for p in entry.rglob("*")):

@@ -1,0 +1,120 @@
+"""Several processes (hosts) on JAX's own runtime: joining the job, the barrier, and reading a
+process's own members from global arrays.
+
+A run on P processes is one SPMD program over a mesh of every process's devices: each process
+holds the members of its devices, writes their records and its part of each checkpoint (orbax
+writes multi-host checkpoints natively), and process 0 writes what belongs to the whole run
+(``plan.json``, ``timing.jsonl``, ``summary.json``, the figures). The processes advance chunk by
+chunk together; the only cross-process values are the trainer's two ``psum``\\ s and the barriers
+here.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+
+import jax
+import numpy as np
+
+# Environment variables a job may set instead of flags (JAX's own names; SLURM's are read by JAX).
+COORDINATOR_ENV, NUM_PROCESSES_ENV, PROCESS_ID_ENV = "JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"
+
+
+class CoordinatorError(RuntimeError):
+    """The job's coordinator could not be reached, or the flags do not describe a job."""
+
+
+def is_primary() -> bool:
+    return jax.process_index() == 0
+
+
+def sync(name: str) -> None:
+    """Wait until every process has reached the barrier ``name`` (nothing with one process)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
+
+
+def fetch(tree):
+    """A pytree of (global) arrays as numpy: the whole array where this process holds all of it,
+    else its own rows with the others left zero (read only the rows of :func:`local_rows`)."""
+
+    def one(x):
+        if not isinstance(x, jax.Array) or x.is_fully_addressable:
+            return np.asarray(jax.device_get(x))
+        out = np.zeros(x.shape, x.dtype)
+        for shard in x.addressable_shards:
+            out[shard.index] = np.asarray(shard.data)
+        return out
+
+    return jax.tree.map(one, tree)
+
+
+def local_rows(sharding, num_rows: int) -> list[int]:
+    """The rows of a ``num_rows``-long member axis that this process's devices hold."""
+    index_map = sharding.addressable_devices_indices_map((num_rows,))
+    return sorted({row for index in index_map.values() for row in range(*index[0].indices(num_rows))})
+
+
+def wanted() -> bool:
+    """Whether the environment describes a job of several processes: JAX's coordinator variable,
+    or a SLURM step with several tasks (JAX reads SLURM's variables itself)."""
+    if os.environ.get(COORDINATOR_ENV):
+        return True
+    return int(os.environ.get("SLURM_STEP_NUM_TASKS", os.environ.get("SLURM_NTASKS", "1")) or 1) > 1
+
+
+def _split_address(address: str) -> tuple[str, int]:
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise CoordinatorError(f"--coordinator {address!r}: expected HOST:PORT")
+    return host.strip("[]"), int(port)
+
+
+def _wait_for_coordinator(address: str, timeout_s: float) -> None:
+    """Connect to the coordinator's port until it answers or ``timeout_s`` passes. JAX's own
+    client aborts the process with a page of C++ stack when the coordinator is unreachable; this
+    check fails first, in one line."""
+    host, port = _split_address(address)
+    deadline = time.monotonic() + timeout_s
+    last = "no answer"
+    while True:
+        try:
+            with socket.create_connection((host, port), timeout=min(5.0, timeout_s)):
+                return
+        except OSError as err:
+            last = err.strerror or type(err).__name__
+        if time.monotonic() >= deadline:
+            raise CoordinatorError(
+                f"cannot reach the coordinator {address} within {timeout_s:g} s ({last}); start process 0 "
+                "first, or check --coordinator and the network"
+            )
+        time.sleep(0.5)
+
+
+def initialize(
+    coordinator: str | None, num_processes: int | None, process_id: int | None, timeout_s: float
+) -> None:
+    """Join the job (``jax.distributed.initialize``). Missing values come from JAX's environment
+    variables or its cluster detection (SLURM, Open MPI, Kubernetes). A process other than 0 first
+    checks within ``timeout_s`` that the coordinator answers."""
+    coordinator = coordinator or os.environ.get(COORDINATOR_ENV)
+    if num_processes is None and os.environ.get(NUM_PROCESSES_ENV):
+        num_processes = int(os.environ[NUM_PROCESSES_ENV])
+    if process_id is None and os.environ.get(PROCESS_ID_ENV):
+        process_id = int(os.environ[PROCESS_ID_ENV])
+    if num_processes is not None and process_id is not None and not 0 <= process_id < num_processes:
+        raise CoordinatorError(f"--process-id {process_id} is not in 0..{num_processes - 1}")
+    if coordinator is not None:
+        _split_address(coordinator)
+        if process_id not in (None, 0):
+            _wait_for_coordinator(coordinator, timeout_s)
+    jax.distributed.initialize(
+        coordinator_address=coordinator,
+        num_processes=num_processes,
+        process_id=process_id,
+        initialization_timeout=max(int(timeout_s), 1),
+    )
