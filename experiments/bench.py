@@ -6,10 +6,13 @@
     python experiments/bench.py update   [--algos sac dsac xsac xdsac] [--widths 64 128 256] [--seeds 1 5 20]
     python experiments/bench.py train    [--env tracking] [--algos xsac xdsac] [--seeds 1 5 20]
                                          [--widths 256 64] [--chunks 2] [--set KEY=VALUE ...]
+                                         [--devices 1 2]  (members spread over that many devices)
     python experiments/bench.py tracks   [--seeds 1 4 20] [--count 64]
 
 Numbers are wall-clock rates after compilation (compile time is reported separately), measured with
-``block_until_ready`` on the default JAX device. Tests never assert timings; these scripts do.
+``block_until_ready`` on the default JAX device (``train --devices``: on that many devices; on a
+CPU-only machine the host is split into that many XLA devices). Tests never assert timings; these
+scripts do.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from xrl_jax.config import PRESETS
 
@@ -182,9 +186,10 @@ def peak_memory_bytes() -> dict:
 
 
 def bench_train(
-    env: str, algo: str, seeds: int, width: int | None, chunks: int, preset: str, overrides: list
+    env: str, algo: str, seeds: int, width: int | None, chunks: int, preset: str, overrides: list, devices: int = 1
 ) -> dict:
-    """End-to-end training env-steps/s (one gradient step per transition included), all seeds together.
+    """End-to-end training env-steps/s (one gradient step per transition included), all seeds together,
+    spread over ``devices`` devices as a run spreads its members.
 
     Times ``chunks`` compiled chunks after the first (which carries compilation and the warm-up);
     reports the compile time, the per-seed memory estimate and the peak memory.
@@ -199,16 +204,16 @@ def bench_train(
     cfg = T.resolve_config(env, algo, preset, num_seeds=seeds, total_steps=steps, overrides=sets)
     cfg = cfg.replace(buffer_size=max(cfg.batch_size, min(cfg.buffer_size, steps)))
     start = time.perf_counter()
-    trainer = T.make_train(cfg)
-    state = jax.block_until_ready(trainer.init(jnp.int32(0), jnp.arange(seeds, dtype=jnp.int32)))
+    trainer = T.make_train(cfg, devices=jax.devices()[:devices])
+    state = jax.block_until_ready(trainer.init(0, range(seeds)))
     setup_s = time.perf_counter() - start
     start = time.perf_counter()
-    state, metrics = trainer.chunk(state, jnp.int32(0))
+    state, metrics = trainer.chunk(state, np.int32(0))
     jax.block_until_ready(metrics)
     first_chunk_s = time.perf_counter() - start  # compile + one chunk (mostly warm-up)
     start = time.perf_counter()
     for c in range(1, chunks + 1):
-        state, metrics = trainer.chunk(state, jnp.int32(c * cfg.chunk_vector_steps))
+        state, metrics = trainer.chunk(state, np.int32(c * cfg.chunk_vector_steps))
     jax.block_until_ready(metrics)
     seconds = time.perf_counter() - start
     start = time.perf_counter()
@@ -224,6 +229,7 @@ def bench_train(
         "env": env,
         "algo": algo,
         "seeds": seeds,
+        "devices": devices,
         "width": width or cfg.agent.actor_width,
         "num_envs": cfg.num_envs,
         "batch_size": cfg.batch_size,
@@ -434,6 +440,9 @@ def main(argv: list[str] | None = None) -> int:
         "--widths", nargs="+", type=int, default=[256, 64], help="actor/critic widths (paper: 256)"
     )
     tr_parser.add_argument("--chunks", type=int, default=2, help="timed chunks after the first")
+    tr_parser.add_argument(
+        "--devices", nargs="+", type=int, default=[1], help="device counts to spread the seeds over"
+    )
     tr_parser.add_argument("--preset", default="paper", choices=PRESETS)
     tr_parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra config overrides")
     tk_parser = sub.add_parser("tracks", help="fresh-track refill cost per track, FLOPs per track")
@@ -441,6 +450,12 @@ def main(argv: list[str] | None = None) -> int:
     tk_parser.add_argument("--count", type=int, default=64, help="tracks per seed and refill (half a feed)")
     tk_parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
+    if args.command == "train" and max(args.devices) > 1:
+        # A CPU host becomes that many XLA devices (read when the backend starts, i.e. below).
+        flags = os.environ.get("XLA_FLAGS", "")
+        if "xla_force_host_platform_device_count" not in flags:
+            count = max(args.devices)
+            os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
 
     report: dict = {"machine": machine_info(), "command": args.command}
     if args.command == "env":
@@ -462,13 +477,18 @@ def main(argv: list[str] | None = None) -> int:
             for batch in args.batches
         ]
     elif args.command == "train":
-        if min(args.seeds) < 1 or min(args.widths) < 1 or args.chunks < 1:
-            parser.error("--seeds, --widths and --chunks must be positive")
+        if min(args.seeds) < 1 or min(args.widths) < 1 or args.chunks < 1 or min(args.devices) < 1:
+            parser.error("--seeds, --widths, --chunks and --devices must be positive")
+        if max(args.devices) > len(jax.devices()):
+            parser.error(f"--devices {max(args.devices)}: only {len(jax.devices())} device(s) here")
+        if any(seeds % n for seeds in args.seeds for n in args.devices):
+            parser.error("every --seeds value must be a multiple of every --devices value")
         report["results"] = [
-            bench_train(args.env, algo, seeds, width, args.chunks, args.preset, args.set)
+            bench_train(args.env, algo, seeds, width, args.chunks, args.preset, args.set, devices)
             for algo in args.algos
             for width in args.widths
             for seeds in args.seeds
+            for devices in args.devices
         ]
     elif args.command == "update":
         if min(args.widths) < 1 or min(args.seeds) < 1 or args.repeats < 1:

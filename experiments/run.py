@@ -1,8 +1,10 @@
 """Train SAC / DSAC / XSAC / XDSAC on a CarEnv scenario: ``python experiments/run.py --env tracking``.
 
-All seeds of a run train in one process: the whole SAC loop is one compiled chunk, vmapped over
-seeds (see ``xrl_jax/train/``). Results land in one folder (``--out``) that ``--resume`` can
-continue; a stopped and resumed run gives exactly the metrics of an uninterrupted one.
+All seeds of a run, and all points of a hyper-parameter sweep (``--sweep kappa=0,0.01``), train in
+one program: the whole SAC loop is one compiled chunk, vmapped over members (seed x sweep point) and
+spread over every device (``--devices``) and, with ``--coordinator``, over several processes (see
+``xrl_jax/train/``). Results land in one folder (``--out``) that ``--resume`` can continue; a
+stopped and resumed run gives exactly the metrics of an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -56,10 +58,28 @@ presets:
 
 {settings}
 
+sweeps (--sweep FIELD=V1,V2,..., repeatable; the grid is the product of the lists):
+  every point x every seed trains in the same program. Sweepable: the traced agent settings
+  actor_lr, critic_lr, alpha_lr, gamma, tau, kappa, target_entropy and the initial alpha
+  (init_alpha); widths, depths and other static settings need one run per value. The same seed
+  starts from the same weights and tracks at every point, so the points differ by their values
+  alone. Files are named point_<p>_seed_<i>; summary.json reports every point (IQM, 95 % CI),
+  and sweep.png plots final return and early-termination rate against the swept value
+  (--baseline DIR adds another run's final score as a line, as in the paper's Fig. 8).
+
+devices and hosts (README "Scaling out"):
+  members are spread over all devices JAX sees (--devices N: the first N per process) and run in
+  groups when they do not fit a device's memory. Several processes join with --coordinator
+  HOST:PORT --num-processes N --process-id I, or the variables JAX_COORDINATOR_ADDRESS,
+  JAX_NUM_PROCESSES, JAX_PROCESS_ID, or under SLURM (srun) with no flags at all; every process
+  gets the same options and --out (a shared file system), trains its share, and process 0 writes
+  the summary. Resume by starting every process again with --resume DIR.
+
 results folder:
   config.json (resolved config, versions, git commit), metrics/seed_<i>.jsonl (every
   log_interval steps), eval/seed_<i>.jsonl, checkpoints/, summary.json (IQM and 95 % stratified
-  bootstrap CI over seeds, at the end and at every evaluation step) and learning_curve.png.
+  bootstrap CI over seeds, at the end and at every evaluation step) and learning_curve.png
+  (sweeps: point_<p>_seed_<i> files and sweep.png).
   An existing folder is never overwritten: use --resume to continue it. One run writes into a
   folder at a time (a second one is refused); a resume checks that the files it continues are all
   there, and falls back to the previous checkpoint (two are kept) when the newest is damaged.
@@ -116,8 +136,43 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="continue the run stored in DIR (other options, if given, must match its config)",
     )
+    parser.add_argument(
+        "--sweep",
+        metavar="FIELD=V1,V2,...",
+        action="append",
+        default=None,
+        help="train every value of a traced hyper-parameter in the same program (see below); repeatable",
+    )
+    parser.add_argument(
+        "--baseline", metavar="DIR", default=None, help="a finished run drawn as a line in sweep.png"
+    )
+    parser.add_argument(
+        "--devices", type=positive_int, default=None, help="devices per process to use (default: all)"
+    )
+    hosts = parser.add_argument_group("several processes (default: JAX's variables, or SLURM's)")
+    hosts.add_argument("--coordinator", metavar="HOST:PORT", default=None, help="process 0's address")
+    hosts.add_argument("--num-processes", type=positive_int, default=None, help="processes in the job")
+    hosts.add_argument("--process-id", type=non_negative_int, default=None, help="this process's index")
+    hosts.add_argument(
+        "--coordinator-timeout",
+        type=positive_int,
+        default=120,
+        metavar="S",
+        help="seconds to wait for the coordinator and the other processes (default 120)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no log lines")
     return parser
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0, with a one-line error otherwise."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {value}")
+    return value
 
 
 def fail(message: str) -> int:
@@ -142,18 +197,22 @@ def enable_compilation_cache() -> None:
 
 def _config_from_args(args, base: dict | None = None):
     """The resolved TrainConfig; unspecified options come from ``base`` (a stored run) or defaults."""
+    from xrl_jax.config import parse_sweep
     from xrl_jax.train import parse_overrides, resolve_config
 
     base = base or {}
     overrides = parse_overrides(args.set or [])
-    return resolve_config(
+    stored_sweep = tuple((name, tuple(values)) for name, values in base.get("sweep", ()))
+    cfg = resolve_config(
         env=args.env or base.get("env", "tracking"),
         algo=args.algo or base.get("algo", "xsac"),
         preset=args.preset or base.get("preset", "paper"),
         num_seeds=args.seeds or base.get("num_seeds", 1),
         total_steps=args.steps if args.steps is not None else None,
         overrides=overrides,
+        sweep=parse_sweep(args.sweep) if args.sweep else stored_sweep,
     )
+    return cfg.replace(num_devices=args.devices) if args.devices else cfg
 
 
 def _resume_mismatches(args, stored) -> list[str]:
@@ -168,6 +227,7 @@ def _resume_mismatches(args, stored) -> list[str]:
         ("preset", "preset"),
         ("seeds", "num_seeds"),
         ("steps", "total_steps"),
+        ("sweep", "sweep"),
     ]
     out = []
     for option, field in checked:
@@ -190,13 +250,63 @@ def main(argv: list[str] | None = None) -> int:
         return _main(args, argv, stop)
 
 
+def _join_processes(args) -> str | None:
+    """Join a multi-process job when the flags or the environment describe one; returns an error
+    message, or None. Every check that can fail without the other processes comes first."""
+    from xrl_jax.train import hosts
+
+    flags = (args.coordinator, args.num_processes, args.process_id)
+    if not any(v is not None for v in flags) and not hosts.wanted():
+        return None
+    if args.out is None and args.resume is None:
+        return "a run of several processes needs --out (or --resume): every process writes into the same folder"
+    try:
+        hosts.initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
+    except hosts.CoordinatorError as err:
+        return str(err)
+    except (RuntimeError, ValueError) as err:  # JAX's own checks of the job description
+        return f"cannot join the job: {str(err).strip().splitlines()[0]}"
+    return None
+
+
+def _check_devices(cfg) -> str | None:
+    from xrl_jax.train.chunk import mesh_devices
+
+    try:
+        mesh_devices(cfg.num_devices)
+    except ValueError as err:
+        return str(err)
+    return None
+
+
+def _read_baseline(args, cfg) -> tuple[dict | None, str | None]:
+    """The --baseline run's summary (None without --baseline), or an error message."""
+    if args.baseline is None:
+        return None, None
+    if cfg.num_points == 1:
+        return None, "--baseline draws a line in a sweep's figure; give it with --sweep"
+    path = Path(args.baseline) / "summary.json"
+    try:
+        baseline = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        return None, f"--baseline {args.baseline}: no readable summary.json ({getattr(err, 'strerror', None) or err})"
+    if baseline.get("env") != cfg.env or not baseline.get("aggregate"):
+        return None, f"--baseline {args.baseline}: not a finished {cfg.env} run without a sweep"
+    return baseline, None
+
+
 def _main(args, argv, stop) -> int:
     from xrl_jax.train import ConfigError, TrainConfig
     from xrl_jax.train.run_folder import RunFolderError, RunLock, holds_results
 
     given_any = any(
-        v is not None for v in (args.env, args.algo, args.seeds, args.steps, args.preset, args.set)
+        v is not None for v in (args.env, args.algo, args.seeds, args.steps, args.preset, args.set, args.sweep)
     )
+    problem = _join_processes(args)
+    if problem:
+        return fail(problem)
+    import jax
+
     try:
         if args.resume is not None:
             if args.out is not None:
@@ -213,10 +323,16 @@ def _main(args, argv, stop) -> int:
                 diffs = _resume_mismatches(args, stored)
                 if diffs:
                     return fail(f"--resume {out} holds a run with another configuration ({'; '.join(diffs)})")
-            cfg = stored
+            cfg = stored.replace(num_devices=args.devices) if args.devices else stored
+            for problem in (_check_devices(cfg), _read_baseline(args, cfg)[1]):
+                if problem:
+                    return fail(problem)
             stop.keep(f"the checkpoints in {out} are kept")
         else:
             cfg = _config_from_args(args)
+            for problem in (_check_devices(cfg), _read_baseline(args, cfg)[1]):
+                if problem:
+                    return fail(problem)
             out = (
                 Path(args.out)
                 if args.out
@@ -231,12 +347,12 @@ def _main(args, argv, stop) -> int:
                 )
             try:
                 out.mkdir(parents=True, exist_ok=True)
-                probe = out / ".write_test"
+                probe = out / f".write_test.{jax.process_index()}"
                 probe.write_text("")
                 probe.unlink()
             except OSError as err:
                 return fail(f"cannot write the results folder --out {out}: {err.strerror or err}")
-        lock = RunLock(out).acquire()
+        lock = RunLock(out, jax.process_index()).acquire()
     except (ConfigError, RunFolderError) as err:
         return fail(str(err))
     try:
@@ -255,22 +371,27 @@ def _train(args, argv, cfg, out: Path, stop) -> int:
     enable_compilation_cache()
     from xrl_jax import evaluate as evaluate_mod
     from xrl_jax import train as train_mod
+    from xrl_jax.train import hosts
 
-    log = (lambda *a, **k: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr))
-    if args.resume is None:
+    primary = hosts.is_primary()  # process 0 talks for the job; the others train quietly
+    quiet = args.quiet or not primary
+    log = (lambda *a, **k: None) if quiet else (lambda msg: print(msg, file=sys.stderr))
+    baseline, _ = _read_baseline(args, cfg)
+    if args.resume is None and primary:
         document = evaluate_mod.config_document(
             cfg, [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)]
         )
         train_mod.write_atomic(out / "config.json", json.dumps(document, indent=2, sort_keys=True) + "\n")
     resume_command = f"python experiments/run.py --resume {out}"
     stop.resume_hint = resume_command  # from now on the folder can be resumed
+    points = f" x {cfg.num_points} sweep points" if cfg.num_points > 1 else ""
     log(
         f"run.py: {cfg.env}/{cfg.algo} preset {cfg.preset}, "
-        f"{cfg.num_seeds} seed(s) x {cfg.total_steps} steps -> {out}"
+        f"{cfg.num_seeds} seed(s){points} x {cfg.total_steps} steps -> {out}"
     )
     try:
         summary = train_mod.train(
-            cfg, out, resume=args.resume is not None, progress=not args.quiet, log=log, stop=stop
+            cfg, out, resume=args.resume is not None, progress=not quiet, log=log, stop=stop
         )
     except (MemoryPlanError, ConfigError, RunFolderError) as err:
         return fail(str(err))
@@ -286,6 +407,10 @@ def _train(args, argv, cfg, out: Path, stop) -> int:
     if summary is None:
         print(f"run.py: stopped early; continue with: {resume_command}", file=sys.stderr)
         return 1
+    if not primary:
+        return 0
+    if baseline is not None and summary.get("sweep"):
+        evaluate_mod.plot_sweep(summary, out / "sweep.png", baseline)
     print(evaluate_mod.format_curve(summary))
     print()
     print(evaluate_mod.format_table(summary))

@@ -61,6 +61,14 @@ def _first_line(error: BaseException, limit: int = 160) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
+def _sync(name: str) -> None:
+    """A barrier of all processes of a multi-host run (orbax writes one checkpoint together)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
+
+
 class Checkpointer:
     """Keeps the newest ``max_to_keep`` checkpoints of one run state in ``directory``."""
 
@@ -79,14 +87,16 @@ class Checkpointer:
         args = ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(metadata))
         self._manager.save(int(step), args=args, force=True)
         self._manager.wait_until_finished()
-        folder = self.directory / str(int(step))
-        manifest = json.dumps({"files": file_digests(folder)}, indent=1, sort_keys=True)
-        tmp = folder / f".{MANIFEST_NAME}.tmp"
-        with open(tmp, "w") as f:
-            f.write(manifest)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, folder / MANIFEST_NAME)
+        if jax.process_index() == 0:  # in a multi-host run, once all processes' files are written
+            folder = self.directory / str(int(step))
+            manifest = json.dumps({"files": file_digests(folder)}, indent=1, sort_keys=True)
+            tmp = folder / f".{MANIFEST_NAME}.tmp"
+            with open(tmp, "w") as f:
+                f.write(manifest)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, folder / MANIFEST_NAME)
+        _sync(f"xrl-jax checkpoint {self.directory.name}/{int(step)}")
 
     def verify_files(self, step: int) -> bool:
         """Check checkpoint ``step``'s files against its manifest: True when verified, False when it
@@ -189,10 +199,12 @@ class Checkpointer:
         raise NoGoodCheckpointError(f"no usable checkpoint in {self.directory} ({'; '.join(reasons)})")
 
     def _set_aside(self, step: int) -> None:
-        rejected = self.directory.with_name(self.directory.name + ".rejected")
-        rejected.mkdir(parents=True, exist_ok=True)
-        target = rejected / f"{step}-{time.strftime('%Y%m%d-%H%M%S')}"
-        shutil.move(str(self.directory / str(step)), str(target))
+        if jax.process_index() == 0:  # every process reached the same verdict on the shared files
+            rejected = self.directory.with_name(self.directory.name + ".rejected")
+            rejected.mkdir(parents=True, exist_ok=True)
+            target = rejected / f"{step}-{time.strftime('%Y%m%d-%H%M%S')}"
+            shutil.move(str(self.directory / str(step)), str(target))
+        _sync(f"xrl-jax set aside {self.directory.name}/{step}")
         self._manager.reload()
 
     def close(self) -> None:
