@@ -2,7 +2,7 @@
 
     python experiments/evaluate.py RESULTS_DIR [--tracks train|eval] [--episodes N] [--key K]
 
-Every seed's agent is restored from the run's newest checkpoint and driven with the run's evaluation
+Every seed's agent (every member's, in a sweep) is restored from the run's newest checkpoint and driven with the run's evaluation
 protocol (docs/algorithms.md §6.1) over the first N tracks of the chosen set, one episode per track:
 ``train`` is the fixed training bank of a run with ``train_tracks`` > 0 (the gap to ``eval`` is the
 generalisation gap), ``eval`` the run's held-out evaluation tracks. Prints each seed's average return
@@ -69,25 +69,37 @@ def main(argv: list[str] | None = None) -> int:
     evaluate_one = evaluate_mod.make_evaluate(trainer.env, params, trainer.agent, episodes)
     evaluate = jax.jit(jax.vmap(evaluate_one, in_axes=(None, 0)))
     results = jax.device_get(evaluate(jax.random.PRNGKey(args.key), agent_states))  # all seeds at once
+    from xrl_jax.train.run_folder import member_fields
+
     per_seed = []
-    for seed in range(cfg.num_seeds):
-        result = evaluate_mod.summarize_episodes(jax.tree.map(lambda x, s=seed: x[s], results))
-        per_seed.append({"seed": seed, **result})
+    for member in range(cfg.num_members):  # a plain run's members are its seeds
+        result = evaluate_mod.summarize_episodes(jax.tree.map(lambda x, m=member: x[m], results))
+        fields = member_fields(cfg, member)
+        per_seed.append({**fields, **result} if cfg.num_points > 1 else {"seed": fields["seed"], **result})
+        where = f"point {fields['point']} {fields['sweep']} " if cfg.num_points > 1 else ""
         etr = result["avg_etr"]
-        print(f"seed {seed}: return {result['avg_return']:.2f}, early-termination rate {etr:.2f}")
-    aggregate = evaluate_mod.aggregate_metrics(per_seed, cfg.env)
-    for key, label in evaluate_mod.summary_metrics(cfg.env):
-        if key in aggregate:
-            agg = aggregate[key]
-            interval = f"[{agg['low']:.3f}, {agg['high']:.3f}]"
-            print(f"{label} on {episodes} {args.tracks} tracks: IQM {agg['estimate']:.3f} {interval}")
+        print(f"{where}seed {fields['seed']}: return {result['avg_return']:.2f}, early-termination rate {etr:.2f}")
+    aggregates = []
+    for point, values in enumerate(cfg.sweep_points):
+        rows = [row for m, row in enumerate(per_seed) if cfg.member_point_seed(m)[0] == point]
+        aggregate = evaluate_mod.aggregate_metrics(rows, cfg.env)
+        aggregates.append({"point": point, "values": values, "aggregate": aggregate})
+        for key, label in evaluate_mod.summary_metrics(cfg.env):
+            if key in aggregate:
+                agg = aggregate[key]
+                interval = f"[{agg['low']:.3f}, {agg['high']:.3f}]"
+                at = f" at {values}" if values else ""
+                print(f"{label}{at} on {episodes} {args.tracks} tracks: IQM {agg['estimate']:.3f} {interval}")
     document = {
         "tracks": args.tracks,
         "episodes": episodes,
         "key": args.key,
-        "aggregate": aggregate,
         "per_seed": [{k: v for k, v in row.items() if k != "episode_returns"} for row in per_seed],
     }
+    if cfg.num_points > 1:
+        document["points"] = aggregates
+    else:
+        document["aggregate"] = aggregates[0]["aggregate"]
     out = run / f"evaluation_{args.tracks}.json"
     out.write_text(json.dumps(document, indent=2) + "\n")
     print(f"written: {out}")

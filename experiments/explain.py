@@ -104,6 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--seed", type=non_negative_int, default=0, help="which seed of the run (default 0)")
     parser.add_argument(
+        "--point", type=non_negative_int, default=0, help="which point of a sweep run (default 0)"
+    )
+    parser.add_argument(
         "--episode", type=non_negative_int, default=0, help="evaluation track index (default 0)"
     )
     parser.add_argument("--step", type=non_negative_int, default=0, help="step drawn into a .png (default 0)")
@@ -193,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     if multi_agent and args.slot is not None and args.slot >= NUM_SLOTS:
         return fail(f"--slot {args.slot} out of range: the intersection has slots 0..{NUM_SLOTS - 1}")
     try:
-        cfg, trainer, agent_state = load_trained_agent(args.run, args.seed)
+        cfg, trainer, agent_state = load_trained_agent(args.run, args.seed, args.point)
     except RunError as err:
         return fail(str(err))
     if args.episode >= cfg.eval_episodes:

@@ -210,11 +210,12 @@ class RunError(ValueError):
 
 @functools.lru_cache(maxsize=2)
 def shared_trainer(cfg):
-    """The run's trainer, shared by repeated loads of one config in a process (its agent, and so
-    the compiled episode rollouts, are then reused)."""
+    """The run's trainer on this machine's first device, shared by repeated loads of one config in a
+    process (its agent, and so the compiled episode rollouts, are then reused). A run trained on
+    several devices or hosts restores here onto one."""
     from xrl_jax.train import get_trainer
 
-    return get_trainer(cfg)
+    return get_trainer(cfg, devices=jax.devices()[:1])
 
 
 def read_run_config(run_dir):
@@ -236,22 +237,26 @@ def read_run_config(run_dir):
         raise RunError(f"{config_path} is unreadable or from another version ({err})") from None
 
 
-def _checkpoint_groups(run_dir, cfg) -> list[list[int]]:
-    """The seed groups of the run's checkpoints (``plan.json``; one group when it is missing)."""
+def _checkpoint_plan(run_dir, cfg) -> tuple[list[list[int]], int]:
+    """The member groups of the run's checkpoints and the device count they were padded to
+    (``plan.json``; one group on one device when it is missing)."""
     import json
     from pathlib import Path
 
     plan_path = Path(run_dir) / "plan.json"
     if not plan_path.is_file():
-        return [list(range(cfg.num_seeds))]
-    return json.loads(plan_path.read_text())["groups"]
+        return [list(range(cfg.num_members))], 1
+    plan = json.loads(plan_path.read_text())
+    return plan["groups"], int(plan.get("devices", 1))
 
 
-def _restore_group_agents(run_dir, cfg, groups, group_index: int):
-    """``(trainer, seeds, agents)``: the newest checkpoint of one group, its seeds in row order."""
+def _restore_group_agents(run_dir, cfg, group: list[int], devices: int, group_index: int):
+    """``(trainer, members, agents)``: the newest checkpoint of one group, its members in row order
+    (rows past them are the padding to the device count)."""
     from pathlib import Path
 
     from xrl_jax.checkpoint import Checkpointer
+    from xrl_jax.train.memory import padded_members
 
     directory = Path(run_dir) / "checkpoints" / f"group_{group_index}"
     if not directory.is_dir():
@@ -261,45 +266,50 @@ def _restore_group_agents(run_dir, cfg, groups, group_index: int):
         if checkpointer.latest_step() is None:
             raise RunError(f"no checkpoint in {directory}")
         trainer = shared_trainer(cfg)
-        state, meta = checkpointer.restore(trainer.abstract_state(len(groups[group_index])))
+        state, meta = checkpointer.restore(trainer.abstract_state(len(padded_members(group, devices))))
     finally:
         checkpointer.close()
-    return trainer, list(meta.get("seeds", groups[group_index])), state.agent
+    members = list(meta.get("members", meta.get("seeds", group)))
+    return trainer, members, state.agent
 
 
-def load_trained_agent(run_dir, seed: int = 0):
-    """``(config, trainer, agent_state)`` of seed ``seed`` from the newest checkpoint of a results folder.
+def load_trained_agent(run_dir, seed: int = 0, point: int = 0):
+    """``(config, trainer, agent_state)`` of seed ``seed`` (at sweep point ``point`` of a sweep)
+    from the newest checkpoint of a results folder.
 
     The folder's ``config.json`` holds the full :class:`~xrl_jax.train.TrainConfig`; ``plan.json``
-    says which checkpoint group holds the seed (one group when it is missing). The whole group's
-    run state is restored (structure from ``Trainer.abstract_state``) and the seed's agent taken out.
+    says which checkpoint group holds the member (one group when it is missing). The whole group's
+    run state is restored (structure from ``Trainer.abstract_state``) and the member's agent taken out.
     """
     cfg = read_run_config(run_dir)
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < cfg.num_seeds:
         raise RunError(f"seed {seed} out of range: the run has seeds 0..{cfg.num_seeds - 1}")
-    groups = _checkpoint_groups(run_dir, cfg)
-    group_index = next((g for g, seeds in enumerate(groups) if seed in seeds), None)
+    if isinstance(point, bool) or not isinstance(point, int) or not 0 <= point < cfg.num_points:
+        raise RunError(f"sweep point {point} out of range: the run has points 0..{cfg.num_points - 1}")
+    member = point * cfg.num_seeds + seed
+    groups, devices = _checkpoint_plan(run_dir, cfg)
+    group_index = next((g for g, members in enumerate(groups) if member in members), None)
     if group_index is None:
-        raise RunError(f"seed {seed} is in no checkpoint group of {run_dir}/plan.json")
-    trainer, seeds, agents = _restore_group_agents(run_dir, cfg, groups, group_index)
-    row = seeds.index(seed)
+        raise RunError(f"seed {seed} (point {point}) is in no checkpoint group of {run_dir}/plan.json")
+    trainer, members, agents = _restore_group_agents(run_dir, cfg, groups[group_index], devices, group_index)
+    row = members.index(member)
     return cfg, trainer, jax.tree.map(lambda leaf: leaf[row], agents)
 
 
 def load_trained_agents(run_dir):
-    """``(config, trainer, agent_states)``: every seed's agent, stacked on a leading axis in seed
-    order, restoring each checkpoint group once."""
+    """``(config, trainer, agent_states)``: every member's agent (a plain run's: every seed's),
+    stacked on a leading axis in member order, restoring each checkpoint group once."""
     cfg = read_run_config(run_dir)
-    groups = _checkpoint_groups(run_dir, cfg)
-    by_seed, trainer = {}, None
-    for group_index in range(len(groups)):
-        trainer, seeds, agents = _restore_group_agents(run_dir, cfg, groups, group_index)
-        for row, seed in enumerate(seeds):
-            by_seed[seed] = jax.tree.map(lambda leaf, r=row: leaf[r], agents)
-    missing = sorted(set(range(cfg.num_seeds)) - set(by_seed))
+    groups, devices = _checkpoint_plan(run_dir, cfg)
+    by_member, trainer = {}, None
+    for group_index, group in enumerate(groups):
+        trainer, members, agents = _restore_group_agents(run_dir, cfg, group, devices, group_index)
+        for row, member in enumerate(members):
+            by_member[member] = jax.tree.map(lambda leaf, r=row: leaf[r], agents)
+    missing = sorted(set(range(cfg.num_members)) - set(by_member))
     if missing:
-        raise RunError(f"seeds {missing} are in no checkpoint group of {run_dir}/plan.json")
-    ordered = [by_seed[seed] for seed in range(cfg.num_seeds)]
+        raise RunError(f"members {missing} are in no checkpoint group of {run_dir}/plan.json")
+    ordered = [by_member[member] for member in range(cfg.num_members)]
     stacked = jax.tree.map(lambda *leaves: jax.numpy.stack(leaves), *ordered)
     return cfg, trainer, stacked
 
