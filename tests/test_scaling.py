@@ -1,0 +1,218 @@
+"""Sweeps and scale: every sweep point x seed in one program, spread over devices and processes.
+
+What is compared exactly and what within a tolerance, and why:
+
+* A member's numbers depend on its seed, its sweep point and on how many members share its device
+  (XLA vectorises a vmapped batch of 2 and of 6 differently, so the last bits of the update's
+  reductions differ). With the same per-device member count they are bit-identical: a sweep point
+  equals a plain run of its values, and 4 devices equal 2 devices or 2 processes.
+* A mesh of one device compiles without SPMD partitioning, and XLA's algebraic simplifier then
+  reassociates some divisions (``a / (b / c)`` into ``(a * c) / b``), i.e. different rounding in
+  the last bit. A one-device run therefore equals a multi-device run exactly only up to the first
+  update; see :func:`test_one_device_agrees_within_float32_rounding` for the tolerance.
+"""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from train_support import one_line_error, prepare_cache
+
+ROOT = Path(__file__).resolve().parents[1]
+SWEEP = ["--env", "country_road", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet",
+         "--sweep", "kappa=-0.01,0,0.1"]  # fmt: skip
+POINTS, SEEDS = (-0.01, 0.0, 0.1), 2
+
+
+def records(folder: Path, sub: str) -> dict[str, list[dict]]:
+    return {p.stem: [json.loads(line) for line in p.read_text().splitlines()] for p in (folder / sub).glob("*.jsonl")}
+
+
+def numbers(row: dict) -> dict:
+    return {k: v for k, v in row.items() if isinstance(v, float)}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    prepare_cache(tmp_path_factory.mktemp("cache"))
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("run_cli_scaling", ROOT / "experiments" / "run.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def call(run, capsys, *args):
+    try:
+        status = run.main(list(args))
+    except SystemExit as exc:
+        status = exc.code
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+@pytest.fixture(scope="module")
+def one_device(run, tmp_path_factory):
+    """The kappa sweep on one device in groups of two members (two per device, as below)."""
+    out = tmp_path_factory.mktemp("sweeps") / "one_device"
+    assert run.main([*SWEEP, "--set", "max_group_size=2", "--out", str(out)]) == 0
+    return out
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _env(cache: Path, devices: int) -> dict:
+    env = dict(os.environ, XRL_JAX_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT))
+    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+    env.pop("JAX_COORDINATOR_ADDRESS", None)
+    return env
+
+
+@pytest.fixture(scope="module")
+def sharded(one_device, tmp_path_factory):
+    """The same sweep on 4 forced CPU devices (6 members padded to 8: two per device) and on 2 of
+    them in groups of 3 members (padded to 4: two per device), in one process."""
+    folder = tmp_path_factory.mktemp("sharded")
+    script = (
+        "import sys; sys.path.insert(0, 'experiments'); import run\n"
+        f"args = {SWEEP!r}\n"
+        f"assert run.main([*args, '--devices', '4', '--out', {str(folder / 'four')!r}]) == 0\n"
+        f"assert run.main([*args, '--devices', '2', '--set', 'max_group_size=4', '--out', {str(folder / 'two')!r}]) == 0\n"
+    )
+    cache = Path(os.environ["XRL_JAX_CACHE_DIR"])
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=_env(cache, 4), capture_output=True,
+                          text=True, timeout=900)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return folder
+
+
+def test_sweep_errors_are_one_line_and_write_nothing(run, capsys, tmp_path):
+    out = tmp_path / "never"
+    cases = [
+        (["--sweep", "kappa=a,b"], "not a list of numbers"),
+        (["--sweep", "kappa="], "comma-separated list of numbers"),
+        (["--sweep", "kappa=0.1", "--sweep", "kappa=0.2"], "given twice"),
+        (["--sweep", "actor_width=64,128"], "sweepable: actor_lr, critic_lr"),
+        (["--algo", "sac", "--sweep", "kappa=0,0.1"], "sac has no mixture"),
+        (["--sweep", "kappa=0.1,0.1"], "repeats a value"),
+        (["--sweep", "actor_lr=-1,0.1"], "actor_lr must be positive"),
+        (["--devices", "3"], "sees only 1 cpu device"),
+        (["--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "5"], "not in 0..1"),
+    ]
+    for extra, fragment in cases:
+        base = ["--env", "country_road", "--algo", "xdsac", "--preset", "smoke", "--out", str(out)]
+        status, _, err = call(run, capsys, *base, *extra)
+        one_line_error(status, err, fragment)
+        assert not out.exists(), extra
+
+
+def test_unreachable_coordinator_fails_in_one_line_within_its_timeout(tmp_path):
+    """JAX's own client aborts with a page of C++ stack; the CLI checks the coordinator first."""
+    args = ["--preset", "smoke", "--out", str(tmp_path / "never"), "--coordinator", f"127.0.0.1:{_free_port()}",
+            "--num-processes", "2", "--process-id", "1", "--coordinator-timeout", "2"]  # fmt: skip
+    done = subprocess.run([sys.executable, "experiments/run.py", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60, env=dict(os.environ, PYTHONPATH=str(ROOT)))  # fmt: skip
+    one_line_error(done.returncode, done.stderr, "cannot reach the coordinator", "within 2 s")
+    assert not (tmp_path / "never").exists()
+
+
+def test_a_sweep_point_equals_a_plain_run_of_its_values(run, one_device, tmp_path):
+    """Same seeds, same values, same member count per device: bit-identical records, also in
+    the sweep's per-point summary (a member's stream depends on its seed and point alone)."""
+    out = tmp_path / "plain"
+    args = ["--env", "country_road", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet"]
+    assert run.main([*args, "--set", "kappa=0.1", "--out", str(out)]) == 0
+    sweep_metrics, plain_metrics = records(one_device, "metrics"), records(out, "metrics")
+    for seed in range(SEEDS):
+        swept = sweep_metrics[f"point_2_seed_{seed}"]
+        assert all(r["point"] == 2 and r["sweep"] == {"kappa": 0.1} and r["seed"] == seed for r in swept)
+        assert [numbers(r) for r in swept] == [numbers(r) for r in plain_metrics[f"seed_{seed}"]]
+    summary, plain = (json.loads((f / "summary.json").read_text()) for f in (one_device, out))
+    point = summary["sweep"]["points"][2]
+    assert point["values"] == {"kappa": 0.1} and point["aggregate"] == plain["aggregate"]
+    config = json.loads((one_device / "config.json").read_text())["config"]
+    assert config["sweep"] == [["kappa", list(POINTS)]] and config["num_seeds"] == SEEDS
+    assert (one_device / "sweep.png").stat().st_size > 0
+
+
+def test_four_devices_equal_two_devices_member_by_member(sharded):
+    four, two = sharded / "four", sharded / "two"
+    assert json.loads((four / "plan.json").read_text())["devices"] == 4
+    assert json.loads((two / "plan.json").read_text())["groups"] == [[0, 1, 2], [3, 4, 5]]
+    for sub in ("metrics", "eval"):
+        got, want = records(four, sub), records(two, sub)
+        assert sorted(got) == [f"point_{p}_seed_{s}" for p in range(3) for s in range(SEEDS)]
+        assert got == want, sub
+    summary = json.loads((four / "summary.json").read_text())
+    assert summary["complete"] and [p["values"]["kappa"] for p in summary["sweep"]["points"]] == list(POINTS)
+    assert (four / "sweep.png").stat().st_size > 0
+
+
+def test_one_device_agrees_within_float32_rounding(one_device, sharded):
+    """Exact through the warm-up (no update yet: no division the two programs round differently).
+    Then compared at the first chunk with updates (64 of them): the programs' results differ by
+    one rounding (relative 2**-24 ~ 6e-8) in a few divisions per update, which later updates carry
+    on; 64 Adam steps of lr 1e-4 on weights and losses of order 1 keep such a difference within
+    ~64 x 6e-8 x (steps' sensitivity), and a bound of 1e-4 relative leaves a wide margin for the
+    losses, Q-values and rewards. Means of centred quantities (the mixture logits' mean, the spread
+    of entropies) lose their leading digits to cancellation and are compared against the scale of
+    the numbers they are computed from (order 1) instead."""
+    got, want = records(sharded / "two", "metrics"), records(one_device, "metrics")
+    assert sorted(got) == sorted(want)
+    for name in want:
+        warmup, first_updates = 0, 1
+        assert numbers(got[name][warmup]) == numbers(want[name][warmup]), name
+        a, b = numbers(got[name][first_updates]), numbers(want[name][first_updates])
+        assert a.keys() == b.keys()
+        for key in a:
+            scale = 1.0 if key in ("train/mean_mixture_logits", "train/entropy_std") else max(abs(a[key]), 1e-3)
+            assert abs(a[key] - b[key]) <= 1e-4 * scale, (name, key, a[key], b[key])
+
+
+def test_two_processes_equal_one_process_and_resume_per_process(sharded, tmp_path):
+    """Two processes on 127.0.0.1 (one CPU device each) train the sweep as one job: each writes
+    the records of its members; process 0 writes the summary. Each stops after two chunks and
+    resumes from the job's checkpoint, as a preempted SLURM job would. The records equal the
+    one-process run on two devices with the same grouping bit for bit."""
+    out = tmp_path / "job"
+    port = _free_port()
+    driver = (
+        "import sys\n"
+        "from xrl_jax.train import hosts\n"
+        f"hosts.initialize('127.0.0.1:{port}', 2, int(sys.argv[1]), 60)\n"
+        "from xrl_jax.config import parse_sweep, resolve_config\n"
+        "from xrl_jax.train import train\n"
+        "cfg = resolve_config('country_road', 'xdsac', 'smoke', num_seeds=2, overrides={'max_group_size': '4'},\n"
+        "                     sweep=parse_sweep(['kappa=-0.01,0,0.1']))\n"
+        f"assert train(cfg, {str(out)!r}, progress=False, log=lambda m: None, stop_after_chunks=2) is None\n"
+        f"summary = train(cfg, {str(out)!r}, resume=True, progress=False, log=lambda m: None)\n"
+        "assert summary['complete']\n"
+    )
+    cache = Path(os.environ["XRL_JAX_CACHE_DIR"])
+    procs = [
+        subprocess.Popen([sys.executable, "-c", driver, str(i)], cwd=ROOT, env=_env(cache, 1),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+        for i in range(2)
+    ]
+    outputs = [p.communicate(timeout=900) for p in procs]
+    for p, (_, err) in zip(procs, outputs, strict=True):
+        assert p.returncode == 0, err[-3000:]
+    want = sharded / "two"
+    for sub in ("metrics", "eval"):
+        assert records(out, sub) == records(want, sub), sub
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["memory_plan"]["processes"] == 2 and summary["complete"]
+    expected = json.loads((want / "summary.json").read_text())["sweep"]["points"]
+    assert [p["aggregate"] for p in summary["sweep"]["points"]] == [p["aggregate"] for p in expected]
+    assert (out / ".lock.process_1").exists() and (out / "sweep.png").stat().st_size > 0
+    assert np.all([len(rows) == 3 for rows in records(out, "metrics").values()])
