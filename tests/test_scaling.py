@@ -80,14 +80,11 @@ def _env(cache: Path, devices: int) -> dict:
 
 @pytest.fixture(scope="module")
 def sharded(one_device, tmp_path_factory):
-    """The same sweep on 4 forced CPU devices (6 members padded to 8: two per device) and on 2 of
-    them in groups of 3 members (padded to 4: two per device), in one process."""
+    """The same sweep on 4 forced CPU devices in one process: 6 members padded to 8, two per device."""
     folder = tmp_path_factory.mktemp("sharded")
     script = (
         "import sys; sys.path.insert(0, 'experiments'); import run\n"
-        f"args = {SWEEP!r}\n"
-        f"assert run.main([*args, '--devices', '4', '--out', {str(folder / 'four')!r}]) == 0\n"
-        f"assert run.main([*args, '--devices', '2', '--set', 'max_group_size=4', '--out', {str(folder / 'two')!r}]) == 0\n"
+        f"assert run.main([*{SWEEP!r}, '--devices', '4', '--out', {str(folder / 'four')!r}]) == 0\n"
     )
     cache = Path(os.environ["XRL_JAX_CACHE_DIR"])
     done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=_env(cache, 4), capture_output=True,
@@ -145,14 +142,17 @@ def test_a_sweep_point_equals_a_plain_run_of_its_values(run, one_device, tmp_pat
     assert (one_device / "sweep.png").stat().st_size > 0
 
 
-def test_four_devices_equal_two_devices_member_by_member(sharded):
-    four, two = sharded / "four", sharded / "two"
-    assert json.loads((four / "plan.json").read_text())["devices"] == 4
-    assert json.loads((two / "plan.json").read_text())["groups"] == [[0, 1, 2], [3, 4, 5]]
+def test_four_devices_train_every_member_of_the_sweep(sharded):
+    four = sharded / "four"
+    plan = json.loads((four / "plan.json").read_text())
+    assert plan["devices"] == 4 and plan["groups"] == [[0, 1, 2, 3, 4, 5]]
     for sub in ("metrics", "eval"):
-        got, want = records(four, sub), records(two, sub)
+        got = records(four, sub)
         assert sorted(got) == [f"point_{p}_seed_{s}" for p in range(3) for s in range(SEEDS)]
-        assert got == want, sub
+        for name, rows in got.items():
+            point, seed = int(name.split("_")[1]), int(name.split("_")[3])
+            assert all(r["point"] == point and r["seed"] == seed for r in rows)
+            assert all(r["sweep"] == {"kappa": POINTS[point]} for r in rows)
     summary = json.loads((four / "summary.json").read_text())
     assert summary["complete"] and [p["values"]["kappa"] for p in summary["sweep"]["points"]] == list(POINTS)
     assert (four / "sweep.png").stat().st_size > 0
@@ -167,7 +167,7 @@ def test_one_device_agrees_within_float32_rounding(one_device, sharded):
     losses, Q-values and rewards. Means of centred quantities (the mixture logits' mean, the spread
     of entropies) lose their leading digits to cancellation and are compared against the scale of
     the numbers they are computed from (order 1) instead."""
-    got, want = records(sharded / "two", "metrics"), records(one_device, "metrics")
+    got, want = records(sharded / "four", "metrics"), records(one_device, "metrics")
     assert sorted(got) == sorted(want)
     for name in want:
         warmup, first_updates = 0, 1
@@ -180,10 +180,11 @@ def test_one_device_agrees_within_float32_rounding(one_device, sharded):
 
 
 def test_two_processes_equal_one_process_and_resume_per_process(sharded, tmp_path):
-    """Two processes on 127.0.0.1 (one CPU device each) train the sweep as one job: each writes
-    the records of its members; process 0 writes the summary. Each stops after two chunks and
-    resumes from the job's checkpoint, as a preempted SLURM job would. The records equal the
-    one-process run on two devices with the same grouping bit for bit."""
+    """Two processes on 127.0.0.1 (one CPU device each) train the sweep as one job in groups of
+    3 members (padded to 4: two per device): each writes the records of its members; process 0
+    writes the summary. Each stops after two chunks and resumes from the job's checkpoints, as a
+    preempted SLURM job would. With two members per device, as in the one-process run on 4
+    devices, the records are equal bit for bit."""
     out = tmp_path / "job"
     port = _free_port()
     driver = (
@@ -207,7 +208,8 @@ def test_two_processes_equal_one_process_and_resume_per_process(sharded, tmp_pat
     outputs = [p.communicate(timeout=900) for p in procs]
     for p, (_, err) in zip(procs, outputs, strict=True):
         assert p.returncode == 0, err[-3000:]
-    want = sharded / "two"
+    want = sharded / "four"
+    assert json.loads((out / "plan.json").read_text())["groups"] == [[0, 1, 2], [3, 4, 5]]
     for sub in ("metrics", "eval"):
         assert records(out, sub) == records(want, sub), sub
     summary = json.loads((out / "summary.json").read_text())
@@ -216,3 +218,31 @@ def test_two_processes_equal_one_process_and_resume_per_process(sharded, tmp_pat
     assert [p["aggregate"] for p in summary["sweep"]["points"]] == [p["aggregate"] for p in expected]
     assert (out / ".lock.process_1").exists() and (out / "sweep.png").stat().st_size > 0
     assert np.all([len(rows) == 3 for rows in records(out, "metrics").values()])
+
+
+def test_grid_members_and_their_hyper_parameters():
+    """The grid is the product (first field slowest), members are point-major, every member gets
+    its point's resolved values (alpha_lr follows a swept critic_lr when unset), and the config
+    round-trips through config.json."""
+    import math
+
+    from xrl_jax.config import TrainConfig, parse_sweep, resolve_config
+    from xrl_jax.train.chunk import member_hparams
+    from xrl_jax.train.memory import padded_members
+
+    sweep = parse_sweep(["critic_lr=1e-4,3e-4", "agent.init_alpha=0.1,0.2,0.05"])
+    cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=2, sweep=sweep)
+    assert cfg.num_points == 6 and cfg.num_members == 12
+    assert cfg.sweep_points[1] == {"critic_lr": 1e-4, "init_alpha": 0.2}
+    assert cfg.member_point_seed(7) == (3, 1) and TrainConfig.from_dict(cfg.to_dict()) == cfg
+
+    class Agent:  # member_hparams reads the action count only
+        action_size = 12
+
+    hp = member_hparams(cfg, Agent(), [0, 7, 11])
+    np.testing.assert_allclose(hp.critic_lr, [1e-4, 3e-4, 3e-4], rtol=1e-6)
+    np.testing.assert_allclose(hp.alpha_lr, hp.critic_lr)  # unset alpha_lr follows each point's critic_lr
+    np.testing.assert_allclose(hp.init_log_alpha, np.log([0.1, 0.1, 0.05]), rtol=1e-6)
+    np.testing.assert_allclose(hp.target_entropy, [1.24] * 3, rtol=1e-6)
+    assert math.isclose(float(hp.kappa[0]), cfg.agent.kappa, rel_tol=1e-6)
+    assert padded_members([4, 5, 6], 4) == [4, 5, 6, 6] and padded_members([1, 2], 2) == [1, 2]
