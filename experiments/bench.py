@@ -186,7 +186,14 @@ def peak_memory_bytes() -> dict:
 
 
 def bench_train(
-    env: str, algo: str, seeds: int, width: int | None, chunks: int, preset: str, overrides: list, devices: int = 1
+    env: str,
+    algo: str,
+    seeds: int,
+    width: int | None,
+    chunks: int,
+    preset: str,
+    overrides: list,
+    devices: int = 1,
 ) -> dict:
     """End-to-end training env-steps/s (one gradient step per transition included), all seeds together,
     spread over ``devices`` devices as a run spreads its members.

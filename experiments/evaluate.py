@@ -2,7 +2,8 @@
 
     python experiments/evaluate.py RESULTS_DIR [--tracks train|eval] [--episodes N] [--key K]
 
-Every seed's agent (every member's, in a sweep) is restored from the run's newest checkpoint and driven with the run's evaluation
+Every seed's agent (every member's, in a sweep) is restored from the run's newest checkpoint and
+driven with the run's evaluation
 protocol (docs/algorithms.md §6.1) over the first N tracks of the chosen set, one episode per track:
 ``train`` is the fixed training bank of a run with ``train_tracks`` > 0 (the gap to ``eval`` is the
 generalisation gap), ``eval`` the run's held-out evaluation tracks. Prints each seed's average return
@@ -78,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
         per_seed.append({**fields, **result} if cfg.num_points > 1 else {"seed": fields["seed"], **result})
         where = f"point {fields['point']} {fields['sweep']} " if cfg.num_points > 1 else ""
         etr = result["avg_etr"]
-        print(f"{where}seed {fields['seed']}: return {result['avg_return']:.2f}, early-termination rate {etr:.2f}")
+        scores = f"return {result['avg_return']:.2f}, early-termination rate {etr:.2f}"
+        print(f"{where}seed {fields['seed']}: {scores}")
     aggregates = []
     for point, values in enumerate(cfg.sweep_points):
         rows = [row for m, row in enumerate(per_seed) if cfg.member_point_seed(m)[0] == point]

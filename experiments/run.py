@@ -259,7 +259,9 @@ def _join_processes(args) -> str | None:
     if not any(v is not None for v in flags) and not hosts.wanted():
         return None
     if args.out is None and args.resume is None:
-        return "a run of several processes needs --out (or --resume): every process writes into the same folder"
+        return (
+            "a run of several processes needs --out (or --resume): every process writes into the same folder"
+        )
     try:
         hosts.initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
     except hosts.CoordinatorError as err:
@@ -289,7 +291,10 @@ def _read_baseline(args, cfg) -> tuple[dict | None, str | None]:
     try:
         baseline = json.loads(path.read_text())
     except (OSError, ValueError) as err:
-        return None, f"--baseline {args.baseline}: no readable summary.json ({getattr(err, 'strerror', None) or err})"
+        return (
+            None,
+            f"--baseline {args.baseline}: no readable summary.json ({getattr(err, 'strerror', None) or err})",
+        )
     if baseline.get("env") != cfg.env or not baseline.get("aggregate"):
         return None, f"--baseline {args.baseline}: not a finished {cfg.env} run without a sweep"
     return baseline, None
@@ -300,7 +305,8 @@ def _main(args, argv, stop) -> int:
     from xrl_jax.train.run_folder import RunFolderError, RunLock, holds_results
 
     given_any = any(
-        v is not None for v in (args.env, args.algo, args.seeds, args.steps, args.preset, args.set, args.sweep)
+        v is not None
+        for v in (args.env, args.algo, args.seeds, args.steps, args.preset, args.set, args.sweep)
     )
     problem = _join_processes(args)
     if problem:

@@ -180,8 +180,15 @@ def _validate_agent(cfg: AgentConfig) -> None:
     ):
         _check_choice("AgentConfig: ", name, getattr(cfg, name), choices)
     for name in (
-        "actor_width", "actor_depth", "critic_width", "critic_depth", "fe_width", "fe_item_depth",
-        "fe_set_depth", "n_critics", "components_per_object"
+        "actor_width",
+        "actor_depth",
+        "critic_width",
+        "critic_depth",
+        "fe_width",
+        "fe_item_depth",
+        "fe_set_depth",
+        "n_critics",
+        "components_per_object",
     ):
         check(
             _is_int(getattr(cfg, name), 1), f"{name} must be a positive integer, got {getattr(cfg, name)!r}"
@@ -262,7 +269,9 @@ class TrainConfig:
     memory_budget_gb: float = _field(0.0, "0 = 90 % of the device memory (host RAM within any cgroup limit)")
     checkpoint_minutes: float = _field(30.0, "also checkpoint by wall time (costing at most 2 %); 0 = off")
     num_devices: int = _field(0, "devices the members are spread over (--devices); 0 = every device JAX sees")
-    sweep: tuple = _field((), "swept agent settings, ((name, (value, ...)), ...) (--sweep); the grid is their product")
+    sweep: tuple = _field(
+        (), "swept agent settings, ((name, (value, ...)), ...) (--sweep); the grid is their product"
+    )
     agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
 
     def __post_init__(self) -> None:
@@ -317,7 +326,9 @@ class TrainConfig:
         """The swept values of every point of the grid (the product of the swept lists, the first
         field varying slowest); one empty point for a plain run."""
         names = [name for name, _ in self.sweep]
-        return [dict(zip(names, values, strict=True)) for values in itertools.product(*(v for _, v in self.sweep))]
+        return [
+            dict(zip(names, values, strict=True)) for values in itertools.product(*(v for _, v in self.sweep))
+        ]
 
     @property
     def num_points(self) -> int:
@@ -367,14 +378,29 @@ def _validate_train(cfg: TrainConfig) -> None:
     )
     _require(cfg.agent.algo == cfg.algo, f"agent.algo ({cfg.agent.algo}) differs from algo ({cfg.algo})")
     for name in (
-        "num_seeds", "total_steps", "num_envs", "batch_size", "buffer_size", "log_interval",
-        "eval_interval", "eval_episodes", "checkpoint_interval", "track_feed_size", "warmup_steps"
+        "num_seeds",
+        "total_steps",
+        "num_envs",
+        "batch_size",
+        "buffer_size",
+        "log_interval",
+        "eval_interval",
+        "eval_episodes",
+        "checkpoint_interval",
+        "track_feed_size",
+        "warmup_steps",
     ):
         _require(
             _is_int(getattr(cfg, name), 1), f"{name} must be a positive integer, got {getattr(cfg, name)!r}"
         )
     for name in (
-        "seed", "train_tracks", "track_seed", "eval_track_seed", "max_group_size", "reinit_steps", "num_devices"
+        "seed",
+        "train_tracks",
+        "track_seed",
+        "eval_track_seed",
+        "max_group_size",
+        "reinit_steps",
+        "num_devices",
     ):
         value = getattr(cfg, name)
         _require(_is_int(value, 0), f"{name} must be a non-negative integer, got {value!r}")
@@ -447,7 +473,10 @@ def _validate_sweep(cfg: TrainConfig) -> None:
             f"(sweepable: {', '.join(SWEEPABLE_FIELDS)}); run one process per value of a static setting",
         )
         _require(len(values) > 0, f"--sweep {name} has no values")
-        _require(all(_is_number(v) and math.isfinite(v) for v in values), f"--sweep {name}: values must be finite numbers")
+        _require(
+            all(_is_number(v) and math.isfinite(v) for v in values),
+            f"--sweep {name}: values must be finite numbers",
+        )
         _require(len(set(values)) == len(values), f"--sweep {name} repeats a value: {list(values)}")
         reason = unused_sweep_reason(cfg.agent, name)
         _require(reason is None, f"cannot sweep {name}: {reason}")
@@ -700,7 +729,11 @@ def settings_help(width: int = 100) -> str:
     """Every ``--set`` key with its type, default and documentation, for ``run.py --help``."""
     lines = ["(defaults are the fields' own, which the presets override; § = docs/algorithms.md)"]
     for title, cls, skip in (
-        ("run settings", TrainConfig, {"env", "algo", "preset", "agent", "num_seeds", "total_steps", "sweep"}),
+        (
+            "run settings",
+            TrainConfig,
+            {"env", "algo", "preset", "agent", "num_seeds", "total_steps", "sweep"},
+        ),
         ("agent settings ('agent.' prefix optional)", AgentConfig, {"algo"}),
     ):
         lines.append(f"{title}:")

@@ -77,7 +77,6 @@ class RunState:
     feed: Any = None  # racing on fresh tracks: this seed's envs.track_feed.TrackFeed
 
 
-
 def tree_all_finite(tree) -> jax.Array:
     """True when every floating-point leaf of ``tree`` is finite (one fused reduction)."""
     leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(jnp.result_type(x), jnp.floating)]
@@ -121,7 +120,9 @@ def mesh_devices(count: int = 0) -> list:
         by_process.setdefault(device.process_index, []).append(device)
     local = len(by_process[jax.process_index()])
     if count > local:
-        raise ValueError(f"--devices {count}: this process sees only {local} {jax.default_backend()} device(s)")
+        raise ValueError(
+            f"--devices {count}: this process sees only {local} {jax.default_backend()} device(s)"
+        )
     return [d for devices in by_process.values() for d in (devices[:count] if count else devices)]
 
 
@@ -181,7 +182,9 @@ class Trainer:
     def init(self, base_seed, seed_indices, hparams: HyperParams | None = None) -> RunState:
         seeds = np.asarray(seed_indices, np.int32)
         if seeds.shape[0] % self.num_devices:
-            raise ValueError(f"{seeds.shape[0]} members cannot be spread evenly over {self.num_devices} devices")
+            raise ValueError(
+                f"{seeds.shape[0]} members cannot be spread evenly over {self.num_devices} devices"
+            )
         if hparams is None:
             hparams = self.default_hparams(seeds.shape[0])
         return self.init_members(np.int32(base_seed), *self.put_members((seeds, hparams)))
@@ -190,7 +193,10 @@ class Trainer:
         """Shapes and dtypes of ``num_members`` members' state (nothing allocated); sharded over
         the mesh (a restore target) when the count divides evenly."""
         abstract = jax.eval_shape(
-            self.unsharded_init, jnp.int32(0), jnp.zeros(num_members, jnp.int32), self.default_hparams(num_members)
+            self.unsharded_init,
+            jnp.int32(0),
+            jnp.zeros(num_members, jnp.int32),
+            self.default_hparams(num_members),
         )
         if not sharded or num_members % self.num_devices:
             return abstract
@@ -527,17 +533,15 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None, devices: l
     # cross-device values are the two psums above.
     shard_map = functools.partial(jax.shard_map, mesh=mesh, check_vma=False)
     init_block = jax.vmap(init_one, in_axes=(None, 0, 0))
-    init_members = jax.jit(
-        shard_map(init_block, in_specs=(replicated, members, members), out_specs=members)
+    init_members = jax.jit(shard_map(init_block, in_specs=(replicated, members, members), out_specs=members))
+    report_specs = ChunkReport(
+        metrics=members, has_data=members, health=members, unhealthy_members=replicated
     )
-    report_specs = ChunkReport(metrics=members, has_data=members, health=members, unhealthy_members=replicated)
     chunk = jax.jit(
         shard_map(chunk_block, in_specs=(members, replicated), out_specs=(members, report_specs)),
         donate_argnums=0,
     )
-    evaluate = jax.jit(
-        shard_map(jax.vmap(evaluate_seed), in_specs=members, out_specs=members)
-    )
+    evaluate = jax.jit(shard_map(jax.vmap(evaluate_seed), in_specs=members, out_specs=members))
     loss_names = tuple(f"train/{k}" for k in _update_metric_order(metric_shapes))
     return Trainer(
         cfg, env, params, eval_params, agent, mesh, init_members, chunk, evaluate, loss_names, init_block

@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError
@@ -117,7 +116,9 @@ def divergence_message(
     bad_rows = [r for r in rows if loss_step[r] >= 0 or not health.agent_finite[r]]
     if not bad_rows:
         if int(np.asarray(report.unhealthy_members)) > 0:
-            return f"a member held by another process diverged by step {chunk_end} (its process's log names it)"
+            return (
+                f"a member held by another process diverged by step {chunk_end} (its process's log names it)"
+            )
         return None
     first_step = {r: int(loss_step[r]) if loss_step[r] >= 0 else chunk_end for r in bad_rows}
     row = min(bad_rows, key=lambda r: (first_step[r], r))
@@ -336,14 +337,15 @@ class _HostLoop:
         total, buffer = format_bytes(per_seed["total"]), format_bytes(per_seed["buffer"])
         budget = format_bytes(plan["budget_bytes"])
         what = "seed" if cfg.num_points == 1 else "member (a seed at a sweep point)"
-        log(f"memory: ~{total} per {what} (buffer {buffer}), budget {budget} per device ({plan['budget_source']})")
+        source = plan["budget_source"]
+        log(f"memory: ~{total} per {what} (buffer {buffer}), budget {budget} per device ({source})")
         if devices > 1 or jax.process_count() > 1:
             per_device = -(-len(groups[0]) // devices)
             log(f"devices: {cfg.num_members} members over {devices} devices in {jax.process_count()} "
                 f"process(es), up to {per_device} per device")  # fmt: skip
         if len(groups) > 1:
-            log(f"memory: {cfg.num_members} members do not fit at once; running {len(groups)} groups of up to "
-                f"{len(groups[0])} one after another")  # fmt: skip
+            log(f"memory: {cfg.num_members} members do not fit at once; running {len(groups)} groups of "
+                f"up to {len(groups[0])} one after another")  # fmt: skip
         # Two checkpoints kept per group, plus the one being written.
         needed = 3 * len(groups[0]) * (per_seed["buffer"] + per_seed["agent"] + per_seed["env"])
         needed //= jax.process_count()  # each process writes its members' share
@@ -390,7 +392,16 @@ class _HostLoop:
         ckpt = Checkpointer(self.paths["checkpoints"] / f"group_{group_index}")
         try:
             state, next_chunk = _restore_group(
-                cfg, trainer, ckpt, members, len(rows), group_index, self.fingerprint, resume, self.log, self.warn
+                cfg,
+                trainer,
+                ckpt,
+                members,
+                len(rows),
+                group_index,
+                self.fingerprint,
+                resume,
+                self.log,
+                self.warn,
             )
             resumed_step = cfg.chunk_end_step(next_chunk - 1) if next_chunk else 0
             self.saved_step = resumed_step

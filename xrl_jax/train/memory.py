@@ -21,9 +21,6 @@ class MemoryPlanError(RuntimeError):
     """Even one member does not fit a device's memory budget."""
 
 
-
-
-
 def tree_bytes(tree) -> int:
     leaves = [x for x in jax.tree.leaves(tree) if hasattr(x, "shape") and hasattr(x, "dtype")]
     return int(sum(math.prod(x.shape) * jnp.dtype(x.dtype).itemsize for x in leaves))
