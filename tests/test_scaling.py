@@ -143,6 +143,9 @@ def test_a_sweep_point_equals_a_plain_run_of_its_values(run, one_device, tmp_pat
     assert point["values"] == {"kappa": 0.1} and point["aggregate"] == plain["aggregate"]
     config = json.loads((one_device / "config.json").read_text())["config"]
     assert config["sweep"] == [["kappa", list(POINTS)]] and config["num_seeds"] == SEEDS
+    members = json.loads((one_device / "config.json").read_text())["members"]
+    expected = {"member": 5, "file": "point_2_seed_1", "seed": 1, "point": 2, "sweep": {"kappa": 0.1}}
+    assert members[5] == expected
     assert (one_device / "sweep.png").stat().st_size > 0
 
 

@@ -671,6 +671,13 @@ def config_document(cfg, argv: list[str] | None = None) -> dict[str, Any]:
         "updates_per_seed": max(0, cfg.total_steps - cfg.warmup_steps),
     }
     doc = {"config": cfg.to_dict(), "resolved": resolved, **run_metadata(argv)}
+    if cfg.num_points > 1:  # every member's seed, point and values, in the order of the member axis
+        from xrl_jax.train.run_folder import member_fields, member_stem
+
+        doc["members"] = [
+            {"member": m, "file": member_stem(cfg, m), **member_fields(cfg, m)}
+            for m in range(cfg.num_members)
+        ]
     json.dumps(doc)  # fail early on anything not serialisable
     return doc
 
