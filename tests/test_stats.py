@@ -70,3 +70,32 @@ def test_bootstrap_is_reproducible_and_constant_data_has_zero_width():
 def test_bad_input_is_rejected(scores, kwargs, message):
     with pytest.raises(ValueError, match=message):
         stratified_bootstrap_ci(scores, **kwargs)
+
+
+def test_probability_of_improvement_hand_computed():
+    """X = (1, 3), Y = (2, 2, 3): of the 6 pairs, X wins (3, 2) twice, ties (3, 3) once and loses the
+    three pairs with 1, so P(X > Y) = (2 + 0.5) / 6; and P(Y > X) = 1 - P(X > Y)."""
+    from xrl_jax.stats import probability_of_improvement
+
+    assert probability_of_improvement([1.0, 3.0], [2.0, 2.0, 3.0]) == pytest.approx(2.5 / 6)
+    assert probability_of_improvement([2.0, 2.0, 3.0], [1.0, 3.0]) == pytest.approx(3.5 / 6)
+    # Two tasks: task 0 X always wins (1.0), task 1 X always loses (0.0): the average over tasks.
+    x, y = np.array([[5.0, 0.0], [6.0, 1.0]]), np.array([[1.0, 7.0], [2.0, 8.0], [3.0, 9.0]])
+    assert probability_of_improvement(x, y) == pytest.approx(0.5)
+    assert probability_of_improvement([4.0], [4.0]) == 0.5
+
+
+def test_probability_of_improvement_interval():
+    """Separated samples give 1 with a zero-width interval; overlapping ones an interval that holds
+    the estimate; two runs each give resampled values in {0, 1/4, ..., 1}; bad input is refused."""
+    from xrl_jax.stats import probability_of_improvement_ci
+
+    interval = probability_of_improvement_ci([5.0, 6.0, 7.0], [1.0, 2.0])
+    assert (interval.estimate, interval.low, interval.high) == (1.0, 1.0, 1.0)
+    rng = np.random.default_rng(1)
+    interval = probability_of_improvement_ci(rng.normal(0.5, 1, 20), rng.normal(0, 1, 20), replicates=500)
+    assert interval.low <= interval.estimate <= interval.high and interval.high - interval.low > 0.05
+    small = probability_of_improvement_ci([0.0, 2.0], [1.0, 3.0], replicates=200)
+    assert small.estimate == pytest.approx(0.25) and {small.low * 4, small.high * 4} <= set(range(5))
+    with pytest.raises(ValueError, match="same tasks"):
+        probability_of_improvement_ci(np.zeros((2, 2)), np.zeros((2, 3)))

@@ -6,6 +6,8 @@
 * **Stratified bootstrap confidence interval**: resample the runs of every task (stratum) with
   replacement, recompute the statistic, repeat, and take percentiles of the replicates. With one
   task it is the ordinary percentile bootstrap over seeds.
+* **Probability of improvement** P(X > Y): the chance that a run of X beats a run of Y (ties count
+  half), averaged over tasks, with a bootstrap interval resampling both algorithms' runs.
 
 Host-side numpy: these run once per report, on a few hundred numbers.
 """
@@ -73,16 +75,57 @@ def stratified_bootstrap_ci(
       seed: seed of the resampling generator, so reports are reproducible.
     """
     matrix = _as_score_matrix(scores)
+    _check_bootstrap(confidence, replicates)
+    resampled = _resample_runs(matrix, replicates, np.random.default_rng(seed))
+    values = [statistic(sample) for sample in resampled]
+    return _percentile_interval(float(statistic(matrix)), values, confidence)
+
+
+def _check_bootstrap(confidence: float, replicates: int) -> None:
     if not 0.0 < confidence < 1.0:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
     if replicates < 1:
         raise ValueError(f"replicates must be >= 1, got {replicates}")
+
+
+def _resample_runs(matrix: np.ndarray, replicates: int, rng: np.random.Generator) -> np.ndarray:
+    """``replicates`` same-shape resamples: row indices drawn independently for every task (the strata)."""
     runs, tasks = matrix.shape
-    rng = np.random.default_rng(seed)
-    # Same-shape resamples: row indices drawn independently for every task (the strata).
     rows = rng.integers(0, runs, size=(replicates, runs, tasks))
-    resampled = np.take_along_axis(matrix[None], rows, axis=1)
-    values = np.array([statistic(sample) for sample in resampled])
+    return np.take_along_axis(matrix[None], rows, axis=1)
+
+
+def _percentile_interval(estimate: float, values, confidence: float) -> Interval:
     tail = 100.0 * (1.0 - confidence) / 2.0
-    low, high = np.percentile(values, [tail, 100.0 - tail])
-    return Interval(float(statistic(matrix)), float(low), float(high), confidence)
+    low, high = np.percentile(np.asarray(values), [tail, 100.0 - tail])
+    return Interval(estimate, float(low), float(high), confidence)
+
+
+def probability_of_improvement(scores_x, scores_y) -> float:
+    """P(X > Y) of the rliable paper (Agarwal et al. 2021, §4.3): for every task, the probability that
+    a run of algorithm X scores higher than a run of Y, ties counting one half (the Mann-Whitney U
+    statistic over ``runs_x * runs_y`` pairs), averaged over tasks.
+
+    ``scores_x`` is ``(runs_x,)`` or ``(runs_x, tasks)``, ``scores_y`` ``(runs_y,)`` or ``(runs_y,
+    tasks)``; the run counts may differ, the tasks must match."""
+    x, y = _as_score_matrix(scores_x), _as_score_matrix(scores_y)
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(f"X and Y must cover the same tasks, got {x.shape[1]} and {y.shape[1]}")
+    pairs = x[:, None, :] - y[None, :, :]  # (runs_x, runs_y, tasks)
+    per_task = np.mean((pairs > 0) + 0.5 * (pairs == 0), axis=(0, 1))
+    return float(per_task.mean())
+
+
+def probability_of_improvement_ci(
+    scores_x, scores_y, *, confidence: float = 0.95, replicates: int = 2000, seed: int = 0
+) -> Interval:
+    """:func:`probability_of_improvement` with its percentile bootstrap interval: the runs of X and of
+    Y are resampled independently within every task, as rliable does for two algorithms."""
+    x, y = _as_score_matrix(scores_x), _as_score_matrix(scores_y)
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(f"X and Y must cover the same tasks, got {x.shape[1]} and {y.shape[1]}")
+    _check_bootstrap(confidence, replicates)
+    rng = np.random.default_rng(seed)
+    pairs = zip(_resample_runs(x, replicates, rng), _resample_runs(y, replicates, rng), strict=True)
+    values = [probability_of_improvement(a, b) for a, b in pairs]
+    return _percentile_interval(probability_of_improvement(x, y), values, confidence)
