@@ -152,3 +152,24 @@ def test_the_checks_catch_what_they_are_for():
     assert not _section_exists("docs/carenv-single-agent.md", "12")
     assert "A" in _headings("docs/algorithms.md")[1]
     assert _quirks(QUIRK_DOC) == set(range(1, 17))
+
+
+def test_the_papers_published_numbers_are_well_formed():
+    """docs/paper_results.json: each number names a known env, agent and summary metric (the keys
+    the run summaries use, so a report can set them side by side), its source, and a CI around it."""
+    import json
+
+    from xrl_jax.config import ALGOS, ENVS
+    from xrl_jax.evaluate import summary_metrics
+
+    data = json.loads((ROOT / "docs" / "paper_results.json").read_text())
+    assert len(data["results"]) >= 10
+    for row in data["results"]:
+        assert row["env"] in ENVS and row["algo"] in ALGOS and row["source"], row
+        assert row["metric"] in dict(summary_metrics(row["env"])), row
+        if row["ci"] is not None:
+            low, high = row["ci"]
+            assert low <= row["iqm"] <= high, row
+    for row in data["table_1_country_road_continuous"]:
+        low, high = row["return_ci"]
+        assert low <= row["return_iqm"] <= high and row["flops"] > 0 and row["params"] > 0
