@@ -1,0 +1,123 @@
+"""The report over result folders (hand-written folders: no training): tables with the paper's
+values beside paper-protocol runs only, incomplete folders, improvement probabilities equal to
+xrl_jax.stats by hand, figures, and the CLI's one-line error."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from xrl_jax import stats
+from xrl_jax.config import parse_sweep, resolve_config
+from xrl_jax.evaluate import config_document
+from xrl_jax.report import improvements, read_run, results_rows, write_report
+from xrl_jax.train.run_folder import member_fields, member_stem
+
+ROOT = Path(__file__).resolve().parents[1]
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def fake_run(folder: Path, env, algo, preset, returns, sweep=(), missing=()):
+    """A finished run whose member m ends with return ``returns[m]`` (ETR 0.1 each)."""
+    sweep = parse_sweep(list(sweep))
+    points = len(sweep[0][1]) if sweep else 1
+    cfg = resolve_config(env, algo, preset, num_seeds=len(returns) // points, sweep=sweep)
+    (folder / "eval").mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps(config_document(cfg)))
+    for member, value in enumerate(returns):
+        if member in missing:
+            continue
+        fields = member_fields(cfg, member)
+        rows = [
+            {
+                "step": cfg.total_steps // 2,
+                **fields,
+                "avg_return": value / 2,
+                "avg_etr": 0.5,
+                "avg_episode_length": 9.0,
+            },
+            {
+                "step": cfg.total_steps,
+                **fields,
+                "avg_return": value,
+                "avg_etr": 0.1,
+                "avg_episode_length": 9.0,
+            },
+        ]
+        (folder / "eval" / f"{member_stem(cfg, member)}.jsonl").write_text(
+            "".join(json.dumps(r) + "\n" for r in rows)
+        )
+    return folder
+
+
+@pytest.fixture
+def folders(tmp_path):
+    return {
+        "sac": fake_run(tmp_path / "sac", "tracking", "sac", "quick", [10.0, 12.0, 14.0, 16.0]),
+        "xsac": fake_run(tmp_path / "xsac", "tracking", "xsac", "quick", [13.0, 15.0, 17.0, 9.0]),
+        "dsac": fake_run(tmp_path / "dsac", "country_road", "dsac", "paper", [80.0, 81.0, 82.0, 83.0]),
+        "xdsac": fake_run(
+            tmp_path / "xdsac", "country_road", "xdsac", "paper", [84.0, 85.0, 86.0, 87.0], missing=(3,)
+        ),
+        "sweep": fake_run(
+            tmp_path / "kappa",
+            "country_road",
+            "xdsac",
+            "smoke",
+            [1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
+            sweep=["kappa=0,0.001,0.01"],
+        ),
+    }
+
+
+def test_tables_put_the_papers_values_beside_paper_protocol_runs_only(folders):
+    runs = [read_run(f) for f in folders.values()]
+    road = results_rows(runs, "country_road")
+    assert [r["agent"] for r in road] == ["dsac", "xdsac"]  # the sweep has its own figure
+    assert road[0]["paper: final return"] == "82.24" and road[1]["paper: final return"] == "85.22"
+    assert road[1]["seeds"] == "3/4" and road[1]["status"].startswith("incomplete: 3 of 4")
+    tracking = results_rows(runs, "tracking")
+    assert all(r["paper: final return"] == "-" for r in tracking)  # quick runs are not the paper's protocol
+    iqm = stats.iqm(np.array([10.0, 12.0, 14.0, 16.0]))
+    assert tracking[0]["agent"] == "sac" and tracking[0]["final return"].startswith(f"{iqm:.2f} [")
+
+
+def test_improvement_probability_is_computed_as_by_hand(folders):
+    runs = [read_run(f) for f in folders.values()]
+    (found,) = improvements(runs, "tracking")
+    xs, ys = np.array([13.0, 15.0, 17.0, 9.0]), np.array([10.0, 12.0, 14.0, 16.0])
+    # By hand: 13 beats 10, 12 (2); 15 beats 3; 17 beats 4; 9 beats none: 9 of 16 pairs.
+    assert (
+        found["estimate"] == pytest.approx(9 / 16) == pytest.approx(stats.probability_of_improvement(xs, ys))
+    )
+    assert found["low"] <= found["estimate"] <= found["high"] and found["seeds"] == [4, 4]
+    (road,) = improvements(runs, "country_road")
+    assert road["estimate"] == 1.0 and road["seeds"] == [3, 4]  # the incomplete run's 3 final seeds
+
+
+def test_report_cli_writes_tables_figures_and_report(folders, tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location("report_cli", ROOT / "experiments" / "report.py")
+    cli = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cli)
+    out = tmp_path / "report"
+    assert cli.main([*map(str, folders.values()), "--out", str(out)]) == 0
+    text = (out / "report.md").read_text()
+    assert "## country_road" in text and "## tracking" in text and "P(xsac" in text and "incomplete" in text
+    for name in ("results_tracking.csv", "results_country_road.md", "tracking.png", "country_road.png",
+                 "sweep_kappa.png"):  # fmt: skip
+        assert (out / name).exists(), name
+    assert (out / "tracking.png").read_bytes().startswith(PNG)
+    assert len(json.loads((out / "improvement.json").read_text())) == 2
+    capsys.readouterr()
+    assert cli.main([str(tmp_path / "nothing"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not exist" in err[0]
+
+
+def test_write_report_reads_a_folder_without_any_evaluation(tmp_path):
+    """A run that has only just started: no eval file yet. It is listed, incomplete, nothing fails."""
+    folder = fake_run(tmp_path / "fresh", "tracking", "xdsac", "quick", [1.0, 2.0], missing=(0, 1))
+    report = write_report([folder], tmp_path / "out").read_text()
+    assert "incomplete: 0 of 2" in report

@@ -1,0 +1,233 @@
+"""The report over many result folders: a results table per env with the paper's published numbers
+beside ours, final-performance panels and learning curves per env (the paper's Fig. 5-7), the κ
+sweep (Fig. 8), and the probability that each explainable agent improves on its baseline.
+
+Everything is read from the folders' records (``config.json``, ``eval/``), so a folder that is still
+running or lost a seed is reported as far as it goes, and says so.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from xrl_jax import evaluate as evaluate_mod
+from xrl_jax import stats
+
+PAPER_RESULTS = Path(__file__).resolve().parents[1] / "docs" / "paper_results.json"
+BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
+ALGO_ORDER = ("sac", "xsac", "dsac", "xdsac")
+
+
+class ReportError(ValueError):
+    """A folder that is not a run; the message is one line."""
+
+
+@dataclass(frozen=True)
+class Run:
+    """One result folder as the report sees it."""
+
+    folder: Path
+    cfg: Any
+    summary: dict
+
+    @property
+    def label(self) -> str:
+        return f"{self.cfg.algo} ({self.cfg.preset}, {self.folder.name})"
+
+    @property
+    def is_sweep(self) -> bool:
+        return self.cfg.num_points > 1
+
+    def final_scores(self, metric: str) -> np.ndarray:
+        """Every seed's final value of ``metric`` (seeds without a final evaluation left out)."""
+        rows = self.summary["per_seed"].values()
+        return np.array([row[metric] for row in rows if metric in row], np.float64)
+
+    def status(self) -> str:
+        """'complete', or what is missing (a run still going, a lost seed)."""
+        cfg, done = self.cfg, len(self.summary["seeds"])
+        if self.summary["complete"]:
+            return "complete"
+        return f"incomplete: {done} of {cfg.num_members} seeds have their final evaluation"
+
+
+def read_run(folder: str | Path) -> Run:
+    """A results folder's config and its summary, recomputed from the records."""
+    from xrl_jax.explain import RunError, read_run_config
+
+    folder = Path(folder)
+    try:
+        cfg = read_run_config(folder)
+    except RunError as err:
+        raise ReportError(str(err)) from None
+    return Run(folder, cfg, evaluate_mod.summarize_run(folder, cfg))
+
+
+def paper_values() -> dict[tuple[str, str, str], dict]:
+    """The paper's published numbers by (env, algo, metric) (docs/paper_results.json)."""
+    data = json.loads(PAPER_RESULTS.read_text())
+    return {(r["env"], r["algo"], r["metric"]): r for r in data["results"]}
+
+
+def _cell(agg: dict | None) -> str:
+    return f"{agg['estimate']:.2f} [{agg['low']:.2f}, {agg['high']:.2f}]" if agg else "-"
+
+
+def _paper_cell(value: dict | None) -> str:
+    if value is None:
+        return "-"
+    ci = f" [{value['ci'][0]:.2f}, {value['ci'][1]:.2f}]" if value["ci"] else ""
+    return f"{value['iqm']:.2f}{ci}"
+
+
+def results_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
+    """The table of one env: a row per plain run (sweeps have their own figure), ordered by agent;
+    the paper's value beside ours only where the run used the paper's protocol."""
+    published = paper_values()
+    metrics = evaluate_mod.summary_metrics(env)[:2]
+    rows = []
+    plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
+    for run in sorted(plain, key=lambda r: (ALGO_ORDER.index(r.cfg.algo), r.cfg.preset, r.folder.name)):
+        row = {
+            "agent": run.cfg.algo,
+            "preset": run.cfg.preset,
+            "steps": f"{run.cfg.total_steps:,}",
+            "seeds": f"{len(run.summary['seeds'])}/{run.cfg.num_seeds}",
+            "folder": run.folder.name,
+        }
+        for key, label in metrics:
+            row[label] = _cell(run.summary["aggregate"].get(key))
+            same_protocol = run.cfg.preset == "paper"
+            row[f"paper: {label}"] = _paper_cell(
+                published.get((env, run.cfg.algo, key)) if same_protocol else None
+            )
+        row["status"] = run.status()
+        rows.append(row)
+    return rows
+
+
+def markdown_table(rows: list[dict[str, str]]) -> str:
+    if not rows:
+        return "(no runs)"
+    header = list(rows[0])
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row[h] for h in header) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def csv_table(rows: list[dict[str, str]]) -> str:
+    out = io.StringIO()
+    if rows:
+        writer = csv.DictWriter(out, fieldnames=list(rows[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    return out.getvalue()
+
+
+def improvements(runs: list[Run], env: str, metric: str = "avg_return") -> list[dict[str, Any]]:
+    """P(X > Y) with its 95 % bootstrap CI of each explainable agent X against its baseline Y, for
+    every pair of complete-enough plain runs of ``env`` with the same preset (the final ``metric``
+    of each seed)."""
+    plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
+    out = []
+    for x in plain:
+        for y in plain:
+            if BASELINES.get(x.cfg.algo) != y.cfg.algo or x.cfg.preset != y.cfg.preset:
+                continue
+            xs, ys = x.final_scores(metric), y.final_scores(metric)
+            if xs.size == 0 or ys.size == 0:
+                continue
+            interval = stats.probability_of_improvement_ci(xs, ys)
+            out.append({"x": x.label, "y": y.label, "metric": metric, **interval.as_dict(),
+                        "seeds": [int(xs.size), int(ys.size)]})  # fmt: skip
+    return out
+
+
+def plot_env(runs: list[Run], env: str, path: Path) -> Path | None:
+    """Final performance per agent (IQM and 95 % CI, the paper's Fig. 5/6) and the learning curves
+    (IQM line and CI band per agent, Fig. 7) of the env's plain runs, one PNG."""
+    from matplotlib.figure import Figure
+
+    plain = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["curve"]]
+    if not plain:
+        return None
+    metrics = evaluate_mod.summary_metrics(env)[:2]
+    figure = Figure(figsize=(9.0, 6.0), layout="constrained")
+    axes = figure.subplots(2, 2)
+    for column, (key, label) in enumerate(metrics):
+        bars, curves = axes[0][column], axes[1][column]
+        names, estimates, errors = [], [], []
+        for index, run in enumerate(plain):
+            agg = run.summary["aggregate"].get(key)
+            if agg:
+                names.append(run.label)
+                estimates.append(agg["estimate"])
+                errors.append([agg["estimate"] - agg["low"], agg["high"] - agg["estimate"]])
+            points = [p for p in run.summary["curve"] if key in p]
+            steps = [p["step"] for p in points]
+            colour = f"C{index}"
+            curves.plot(steps, [p[key]["estimate"] for p in points], color=colour, label=run.label)
+            curves.fill_between(steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
+                                color=colour, alpha=0.2, linewidth=0)  # fmt: skip
+        if names:
+            bars.errorbar(estimates, range(len(names)), xerr=np.array(errors).T, fmt="o", capsize=4)
+            bars.set_yticks(range(len(names)), names)
+        bars.set_title(f"{label} (IQM, 95 % CI)")
+        curves.set_title(evaluate_mod._curve_label(label))
+        curves.set_xlabel("environment steps per seed")
+        evaluate_mod.format_step_axis(curves)
+        curves.grid(alpha=0.3)
+        bars.grid(alpha=0.3)
+    axes[1][0].legend(fontsize="small")
+    figure.suptitle(env)
+    figure.savefig(path, dpi=110)
+    return path
+
+
+def write_report(folders: list[str | Path], out: str | Path) -> Path:
+    """Read ``folders`` and write ``out``/report.md with the tables (``results_<env>.md/.csv``),
+    figures (``<env>.png``, ``sweep_<folder>.png``) and improvement probabilities
+    (``improvement.json``); returns the path of report.md."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = [read_run(folder) for folder in folders]
+    lines = ["# Results report", "",
+             "IQM with its 95 % stratified bootstrap CI over seeds (final evaluation). The paper's value "
+             "stands beside a run that used its protocol (`--preset paper`); other presets are shorter "
+             "runs and are not comparable with it. Source of the paper's numbers: docs/paper_results.json.",
+             ""]  # fmt: skip
+    all_improvements = []
+    for env in sorted({r.cfg.env for r in runs}):
+        lines += [f"## {env}", ""]
+        rows = results_rows(runs, env)
+        (out / f"results_{env}.md").write_text(markdown_table(rows) + "\n")
+        (out / f"results_{env}.csv").write_text(csv_table(rows))
+        lines += [markdown_table(rows), ""]
+        figure = plot_env(runs, env, out / f"{env}.png")
+        if figure is not None:
+            lines += [f"![{env}]({figure.name})", ""]
+        found = improvements(runs, env)
+        all_improvements += found
+        for item in found:
+            interval = f"{item['estimate']:.2f} [{item['low']:.2f}, {item['high']:.2f}]"
+            seeds = f"{item['seeds'][0]} vs {item['seeds'][1]} seeds"
+            lines.append(f"- P({item['x']} > {item['y']}) on final return: {interval} ({seeds})")
+        finished = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["aggregate"]]
+        for run in (r for r in runs if r.cfg.env == env and r.is_sweep):
+            baseline = next((b for b in finished if b.cfg.algo == BASELINES.get(run.cfg.algo)), None)
+            path = out / f"sweep_{run.folder.name}.png"
+            if run.summary["sweep"]["points"] and any(p["aggregate"] for p in run.summary["sweep"]["points"]):
+                evaluate_mod.plot_sweep(run.summary, path, baseline.summary if baseline else None)
+                lines += ["", f"Sweep {run.label}: {run.status()}", "", f"![sweep]({path.name})"]
+        lines.append("")
+    (out / "improvement.json").write_text(json.dumps(all_improvements, indent=2) + "\n")
+    report = out / "report.md"
+    report.write_text("\n".join(lines) + "\n")
+    return report
