@@ -102,7 +102,7 @@ def _percentile_interval(estimate: float, values, confidence: float) -> Interval
 
 
 def probability_of_improvement(scores_x, scores_y) -> float:
-    """P(X > Y) of the rliable paper (Agarwal et al. 2021, §4.3): for every task, the probability that
+    """P(X > Y) of the rliable paper (Agarwal et al. 2021, section 4.3): for every task, the probability that
     a run of algorithm X scores higher than a run of Y, ties counting one half (the Mann-Whitney U
     statistic over ``runs_x * runs_y`` pairs), averaged over tasks.
 
