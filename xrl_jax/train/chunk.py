@@ -27,8 +27,10 @@ evaluates, checkpoints and draws the progress bar.
 ``jax.shard_map`` rather than a sharded ``jit``: members never talk to each other, and shard_map
 makes that explicit. Each device runs exactly the one-device program on its block of members, so
 a member's numbers do not depend on the partitioner's choices (no resharding of the replay
-buffer's per-member gathers, no collectives it might insert), and they equal a one-device run's
-bit for bit when the per-device member count is the same. The only cross-member quantities are two
+buffer's per-member gathers, no collectives it might insert), and they equal those of any other
+multi-device run with as many members per device bit for bit (a one-device mesh compiles without
+SPMD partitioning, where XLA reassociates a few divisions: the last bits differ; tests/test_scaling.py
+says how much). The only cross-member quantities are two
 explicit ``psum``s: whether any member's track feed needs a refill (a real branch, taken by all
 devices alike) and how many members are unhealthy (every process of a multi-host run learns that a
 member diverged, also one held by another process).
