@@ -12,6 +12,7 @@ from xrl_jax.config import parse_sweep, resolve_config
 from xrl_jax.evaluate import (
     format_curve,
     format_table,
+    format_training_tracks,
     learning_curve,
     plot_learning_curve,
     plot_sweep,
@@ -188,9 +189,11 @@ def test_a_plain_run_summary_is_unchanged(tmp_path, train_tracks):
 def test_fresh_track_counts_are_kept_per_member(tmp_path):
     cfg = sweep_config(num_seeds=2, overrides={"train_tracks": "0"})
     write_run(tmp_path, cfg)
-    tracks = summarize_run(tmp_path, cfg)["training_tracks"]
+    summary = summarize_run(tmp_path, cfg)
+    tracks = summary["training_tracks"]
     assert tracks["fresh"] and tracks["distinct_per_seed"]["point_2_seed_1"] == 10 + 5
     assert len(tracks["reused_per_seed"]) == cfg.num_members
+    assert "distinct per member (min 10, max 15); 15 resets" in format_training_tracks(summary)
 
 
 def test_the_table_has_one_row_per_point_with_its_values(tmp_path):
@@ -258,9 +261,11 @@ def test_a_two_field_sweep_plots_one_line_per_other_value(tmp_path):
         ([0.0, 0.001, 0.1], ("symlog", 0.001)),
         ([-0.01, 0.0, 0.01], ("linear", None)),  # one order of magnitude: linear reads fine
         ([0.9, 0.95, 0.99], ("linear", None)),
-        ([0.001, 0.01, 0.1], ("linear", None)),  # does not span zero
+        ([0.001, 0.01, 0.1], ("log", None)),  # positive, two orders of magnitude: learning rates
+        ([0.01, 0.02, 0.05], ("linear", None)),
+        ([-0.1, -0.01, -0.001], ("linear", None)),  # negative only: no log axis
         ([0.0], ("linear", None)),
     ],
 )
-def test_the_x_scale_is_symlog_only_across_zero_and_orders_of_magnitude(values, expected):
+def test_the_x_scale_is_logarithmic_only_across_orders_of_magnitude(values, expected):
     assert sweep_x_scale(values) == expected

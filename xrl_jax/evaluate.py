@@ -380,9 +380,14 @@ def format_training_tracks(summary: dict[str, Any]) -> str | None:
     reused = sum(tracks["reused_per_seed"].values())
     spread = f" (min {min(used):,}, max {max(used):,})" if len(used) > 1 else ""
     return (
-        f"training tracks: fresh, {sum(used) / len(used):,.0f} distinct per seed{spread}; "
+        f"training tracks: fresh, {sum(used) / len(used):,.0f} distinct per {_run_unit(summary)}{spread}; "
         f"{reused:,} resets reused a track"
     )
+
+
+def _run_unit(summary: dict[str, Any]) -> str:
+    """What a summary's rows are: seeds, or members (a seed at a sweep point) in a sweep."""
+    return "member" if summary.get("sweep") else "seed"
 
 
 def _format_value(value: Any) -> str:
@@ -535,15 +540,17 @@ def _plot_sweep_curves(summary: dict[str, Any], path: Path, chosen) -> Path:
 
 
 def sweep_x_scale(values) -> tuple[str, float | None]:
-    """``("symlog", linthresh)`` when the swept values span zero (include it, or both signs) and
-    their non-zero magnitudes span at least two orders of magnitude (e.g. kappa = -0.01 … 0.1), with
-    the smallest non-zero magnitude as the linear threshold; else ``("linear", None)``."""
+    """When the swept values span at least two orders of magnitude: ``("symlog", linthresh)`` if
+    they span zero (include it, or both signs; e.g. kappa = -0.01 … 0.1), with the smallest non-zero
+    magnitude as the linear threshold, and ``("log", None)`` if they are all positive (e.g. learning
+    rates 1e-5 … 1e-3); else ``("linear", None)``."""
     values = np.asarray(values, np.float64)
     magnitudes = np.abs(values[values != 0])
-    spans_zero = values.size and (values.min() <= 0 <= values.max())
-    if spans_zero and magnitudes.size >= 2 and magnitudes.max() >= 100 * magnitudes.min():
+    if magnitudes.size < 2 or magnitudes.max() < 100 * magnitudes.min():
+        return "linear", None
+    if values.min() <= 0 <= values.max():
         return "symlog", float(magnitudes.min())
-    return "linear", None
+    return ("log", None) if values.min() > 0 else ("linear", None)
 
 
 def plot_sweep(summary: dict[str, Any], path: str | Path, baseline: dict[str, Any] | None = None) -> Path:
@@ -554,8 +561,8 @@ def plot_sweep(summary: dict[str, Any], path: str | Path, baseline: dict[str, An
     over the point's seeds with its 95 % CI as error bars. With more than one swept field, one line
     per combination of the other fields' values. ``baseline`` (the summary of a plain run, e.g.
     DSAC) adds a horizontal line at its final IQM with its CI shaded, labelled ``baseline: <algo>``.
-    The x scale is symlog when the values span zero and several orders of magnitude
-    (:func:`sweep_x_scale`), else linear.
+    The x scale is symlog when the values span zero and several orders of magnitude, log when they
+    are positive and span several, else linear (:func:`sweep_x_scale`).
     """
     from matplotlib.figure import Figure  # no pyplot: no GUI backend, safe in threads and on servers
 
@@ -575,6 +582,8 @@ def plot_sweep(summary: dict[str, Any], path: str | Path, baseline: dict[str, An
     for ax, (key, label) in zip(axes, chosen, strict=True):
         if scale == "symlog":  # before plotting, so that the margins apply on this scale
             ax.set_xscale("symlog", linthresh=linthresh)
+        elif scale == "log":
+            ax.set_xscale("log")
         for index, (rest, points) in enumerate(lines.items()):
             done = sorted((p for p in points if key in p["aggregate"]), key=lambda p: p["values"][first])
             if not done:
