@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from explain import OneLineParser, positive_int
+from cli_args import OneLineParser, positive_int
 
 
 def build_parser() -> argparse.ArgumentParser:

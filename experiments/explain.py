@@ -23,6 +23,9 @@ import os
 import sys
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cli_args import OneLineParser, non_negative_int, positive_int
+
 FORMATS = (".png", ".gif", ".mp4")
 EPISODE_ENVS = ("country_road", "tracking")  # single-agent scenarios with fixed evaluation tracks
 MULTI_AGENT_ENVS = ("intersection",)  # evaluation episodes with fixed env keys, one slot followed
@@ -37,30 +40,6 @@ def _stored_env(run: Path) -> str | None:
         return json.loads((run / "config.json").read_text())["config"]["env"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse that reports a bad value in one line (no usage block), exit status 2."""
-
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {value}")
-    return value
-
-
-def positive_int(text: str) -> int:
-    value = non_negative_int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 def unit_float(text: str) -> float:

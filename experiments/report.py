@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from explain import OneLineParser
+from cli_args import OneLineParser
 
 
 def build_parser() -> argparse.ArgumentParser:

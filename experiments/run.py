@@ -16,28 +16,13 @@ import os
 import sys
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cli_args import OneLineParser, non_negative_int, positive_int
+
 from xrl_jax.config import ALGOS, ENVS, PRESETS, settings_help  # jax-free: --help stays fast
 
 ROOT = Path(__file__).resolve().parents[1]
 EXIT_DIVERGED = 3
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse that reports a bad value in one line (no usage block), exit status 2."""
-
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1, with a one-line error otherwise."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 EPILOG = """\
@@ -162,17 +147,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no log lines")
     return parser
-
-
-def non_negative_int(text: str) -> int:
-    """argparse type: an integer >= 0, with a one-line error otherwise."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {value}")
-    return value
 
 
 def fail(message: str) -> int:

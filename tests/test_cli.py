@@ -1,7 +1,6 @@
 """The ``experiments/run.py`` CLI end to end: smoke runs, determinism, exact resume, bad input."""
 
 import functools
-import importlib.util
 import json
 import shutil
 import subprocess
@@ -9,7 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from train_support import one_line_error, prepare_cache
+from train_support import call, load_script, one_line_error, prepare_cache
 
 from xrl_jax import train as train_mod
 
@@ -21,20 +20,7 @@ SMOKE = ["--env", "tracking", "--algo", "xdsac", "--preset", "smoke", "--seeds",
 def run(tmp_path_factory):
     """``run.main`` loaded in-process, so runs of one configuration share their compilation."""
     prepare_cache(tmp_path_factory.mktemp("cache"))
-    spec = importlib.util.spec_from_file_location("run_cli", ROOT / "experiments" / "run.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def call(run, capsys, *args):
-    """(exit status, stdout, stderr) of one CLI invocation."""
-    try:
-        status = run.main(list(args))
-    except SystemExit as exc:
-        status = exc.code
-    captured = capsys.readouterr()
-    return status, captured.out, captured.err
+    return load_script("run", "run_cli")
 
 
 def files_of(folder: Path, sub: str) -> dict[str, str]:
@@ -145,10 +131,7 @@ def test_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, caps
 
 @pytest.fixture(scope="module")
 def evaluate_cli(run):
-    spec = importlib.util.spec_from_file_location("evaluate_cli", ROOT / "experiments" / "evaluate.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("evaluate", "evaluate_cli")
 
 
 def test_evaluate_cli_drives_a_bank_runs_agents_on_its_training_and_held_out_tracks(

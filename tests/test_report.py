@@ -2,12 +2,12 @@
 values beside paper-protocol runs only, incomplete folders, improvement probabilities equal to
 xrl_jax.stats by hand, figures, and the CLI's one-line error."""
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from train_support import load_script
 
 from xrl_jax import stats
 from xrl_jax.config import parse_sweep, resolve_config
@@ -98,9 +98,7 @@ def test_improvement_probability_is_computed_as_by_hand(folders):
 
 
 def test_report_cli_writes_tables_figures_and_report(folders, tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("report_cli", ROOT / "experiments" / "report.py")
-    cli = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cli)
+    cli = load_script("report", "report_cli")
     out = tmp_path / "report"
     assert cli.main([*map(str, folders.values()), "--out", str(out)]) == 0
     text = (out / "report.md").read_text()

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from train_support import one_line_error, prepare_cache
+from train_support import call, load_script, one_line_error, prepare_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 SWEEP = ["--env", "country_road", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet",
@@ -43,21 +43,7 @@ def numbers(row: dict) -> dict:
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     prepare_cache(tmp_path_factory.mktemp("cache"))
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("run_cli_scaling", ROOT / "experiments" / "run.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def call(run, capsys, *args):
-    try:
-        status = run.main(list(args))
-    except SystemExit as exc:
-        status = exc.code
-    captured = capsys.readouterr()
-    return status, captured.out, captured.err
+    return load_script("run", "run_cli_scaling")
 
 
 @pytest.fixture(scope="module")

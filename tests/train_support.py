@@ -23,6 +23,27 @@ def prepare_cache(folder: Path) -> None:
             shutil.copy(DATA / f"tracks_seed{seed}_size3.npz", target)
 
 
+def load_script(name: str, module_name: str):
+    """``experiments/<name>.py`` loaded in-process, so that runs of one configuration share their
+    compilation (a subprocess would compile again)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(module_name, DATA.parents[1] / "experiments" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def call(script, capsys, *args):
+    """(exit status, stdout, stderr) of one invocation of a script's ``main``."""
+    try:
+        status = script.main(list(args))
+    except SystemExit as exc:
+        status = exc.code
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
 def one_line_error(status, err, *fragments):
     """A CLI's bad-input exit: status 2 and one line on standard error holding every fragment."""
     assert status == 2, err
