@@ -27,9 +27,11 @@ def load_script(name: str, module_name: str):
     """``experiments/<name>.py`` loaded in-process, so that runs of one configuration share their
     compilation (a subprocess would compile again)."""
     import importlib.util
+    import sys
 
     spec = importlib.util.spec_from_file_location(module_name, DATA.parents[1] / "experiments" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[module_name] = module  # dataclasses look their module up while it executes
     spec.loader.exec_module(module)
     return module
 

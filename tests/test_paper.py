@@ -1,0 +1,58 @@
+"""The campaign script: its plan, one run end to end with the report, skipping what is done, bad input.
+The whole campaign at the smoke preset is a slow test (15 runs)."""
+
+import pytest
+from train_support import call, load_script, one_line_error, prepare_cache
+
+
+@pytest.fixture(scope="module")
+def paper(tmp_path_factory):
+    prepare_cache(tmp_path_factory.mktemp("cache"))
+    return load_script("paper", "paper_cli")
+
+
+def test_the_campaign_holds_every_figure_of_the_paper(paper):
+    runs = {run.name: run for run in paper.campaign()}
+    assert len(runs) == 12 + 1 + 2  # 3 envs x 4 agents, the kappa sweep, two Table I variants
+    assert runs["country_road-xdsac-kappa"].sweep == ("kappa=-0.01,-0.001,0,0.001,0.01,0.1",)
+    assert runs["country_road-xsac-weights1"].sets == ("weight_depth=1",)
+    assert {run.figure for run in runs.values()} == {"Fig. 5", "Fig. 6", "Fig. 7", "Fig. 8", "Table I"}
+
+
+def test_dry_run_prints_the_plan_and_writes_nothing(paper, capsys, tmp_path):
+    out = tmp_path / "campaign"
+    args = ["--out", str(out), "--dry-run", "--preset", "smoke", "--only", "tracking-d"]
+    status, text, _ = call(paper, capsys, *args)
+    assert status == 0 and not out.exists()
+    (row,) = [line.split() for line in text.splitlines() if line.startswith("tracking-")]
+    assert row[:5] == ["tracking-dsac", "Fig.", "6", "new", "20"]  # members: the default 20 seeds
+    assert float(row[-3]) > 0 and "H100 hours at 25% of 67 TFLOP/s" in text  # GFLOP per update
+
+
+def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
+    out = tmp_path / "campaign"
+    args = ["--out", str(out), "--preset", "smoke", "--seeds", "2", "--only", "tracking-dsac"]
+    status, text, err = call(paper, capsys, *args)
+    assert status == 0, err
+    assert (out / "tracking-dsac" / "summary.json").is_file() and (out / "report" / "report.md").is_file()
+    assert "tracking-dsac: starting" in err and "report:" in text
+    status, _, err = call(paper, capsys, *args)
+    assert status == 0 and "tracking-dsac: done, skipped" in err
+
+
+def test_bad_input_fails_in_one_line(paper, capsys, tmp_path):
+    status, _, err = call(paper, capsys, "--out", str(tmp_path), "--only", "nothing-like-this")
+    one_line_error(status, err, "matches no run")
+    status, _, err = call(paper, capsys, "--out", str(tmp_path), "--utilisation", "0")
+    one_line_error(status, err, "--utilisation must be in (0, 1]")
+
+
+@pytest.mark.slow
+def test_the_whole_campaign_at_the_smoke_preset(paper, capsys, tmp_path):
+    out = tmp_path / "campaign"
+    status, _, err = call(paper, capsys, "--out", str(out), "--preset", "smoke", "--seeds", "2")
+    assert status == 0, err[-2000:]
+    assert all((out / run.name / "summary.json").is_file() for run in paper.campaign())
+    report = (out / "report" / "report.md").read_text()
+    assert all(f"## {env}" in report for env in ("country_road", "tracking", "intersection"))
+    assert (out / "report" / "sweep_country_road-xdsac-kappa.png").is_file()
