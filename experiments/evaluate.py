@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{where}seed {fields['seed']}: {scores}")
     aggregates = []
     for point, values in enumerate(cfg.sweep_points):
-        rows = [row for m, row in enumerate(per_seed) if cfg.member_point_seed(m)[0] == point]
+        rows = [per_seed[m] for m in cfg.point_members(point)]
         aggregate = evaluate_mod.aggregate_metrics(rows, cfg.env)
         aggregates.append({"point": point, "values": values, "aggregate": aggregate})
         for key, label in evaluate_mod.summary_metrics(cfg.env):

@@ -304,15 +304,15 @@ def _main(args, argv, stop) -> int:
                 if diffs:
                     return fail(f"--resume {out} holds a run with another configuration ({'; '.join(diffs)})")
             cfg = stored.replace(num_devices=args.devices) if args.devices else stored
-            for problem in (_check_devices(cfg), _read_baseline(args, cfg)[1]):
-                if problem:
-                    return fail(problem)
-            stop.keep(f"the checkpoints in {out} are kept")
         else:
             cfg = _config_from_args(args)
-            for problem in (_check_devices(cfg), _read_baseline(args, cfg)[1]):
-                if problem:
-                    return fail(problem)
+        baseline, problem = _read_baseline(args, cfg)
+        problem = _check_devices(cfg) or problem
+        if problem:  # before anything is written
+            return fail(problem)
+        if args.resume is not None:
+            stop.keep(f"the checkpoints in {out} are kept")
+        else:
             out = (
                 Path(args.out)
                 if args.out
@@ -336,13 +336,14 @@ def _main(args, argv, stop) -> int:
     except (ConfigError, RunFolderError) as err:
         return fail(str(err))
     try:
-        return _train(args, argv, cfg, out, stop)
+        return _train(args, argv, cfg, out, stop, baseline)
     finally:
         lock.release()
 
 
-def _train(args, argv, cfg, out: Path, stop) -> int:
-    """Write the run's config (a new run) and train; every failure ends in one line and a status."""
+def _train(args, argv, cfg, out: Path, stop, baseline: dict | None) -> int:
+    """Write the run's config (a new run) and train; every failure ends in one line and a status.
+    ``baseline``: the --baseline run's summary, drawn into a sweep's figure."""
     from xrl_jax.checkpoint import NoGoodCheckpointError
     from xrl_jax.interrupts import RunInterrupted, exit_status
     from xrl_jax.train import ConfigError, DiskFullError, DivergenceError, MemoryPlanError
@@ -356,7 +357,6 @@ def _train(args, argv, cfg, out: Path, stop) -> int:
     primary = hosts.is_primary()  # process 0 talks for the job; the others train quietly
     quiet = args.quiet or not primary
     log = (lambda *a, **k: None) if quiet else (lambda msg: print(msg, file=sys.stderr))
-    baseline, _ = _read_baseline(args, cfg)
     if args.resume is None and primary:
         document = evaluate_mod.config_document(
             cfg, [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)]

@@ -344,6 +344,10 @@ class TrainConfig:
         member p * num_seeds + s)."""
         return divmod(int(member), self.num_seeds)
 
+    def point_members(self, point: int) -> range:
+        """The members of sweep point ``point``, in seed order."""
+        return range(point * self.num_seeds, (point + 1) * self.num_seeds)
+
     def point_agent(self, point: int) -> AgentConfig:
         """The agent config of sweep point ``point`` (validated, like any config)."""
         return self.agent.replace(**self.sweep_points[point])

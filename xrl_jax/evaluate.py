@@ -273,7 +273,7 @@ def learning_curve(out: str | Path, cfg, point: int | None = None) -> list[dict[
         point = 0
     if not 0 <= point < cfg.num_points:
         raise ValueError(f"point {point} is not in 0..{cfg.num_points - 1}")
-    return _curve(evaluations[point * cfg.num_seeds : (point + 1) * cfg.num_seeds], cfg.env)
+    return _curve([evaluations[m] for m in cfg.point_members(point)], cfg.env)
 
 
 def _curve(evaluations: list[dict[int, dict]], env: str) -> list[dict[str, Any]]:
@@ -324,7 +324,7 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
         finished = [m for m, rows in enumerate(evaluations) if final in rows]
         points = []
         for point, values in enumerate(cfg.sweep_points):
-            members = range(point * cfg.num_seeds, (point + 1) * cfg.num_seeds)
+            members = cfg.point_members(point)
             finals = [evaluations[m][final] for m in members if final in evaluations[m]]
             points.append({
                 "point": point,

@@ -178,8 +178,8 @@ class Trainer:
         return jax.tree.map(put, tree)
 
     def default_hparams(self, num_members: int) -> HyperParams:
-        one = make_hparams(self.config.agent, self.agent.action_size)
-        return jax.tree.map(lambda x: np.full((num_members,), x, np.asarray(x).dtype), one)
+        """The config's own values for every member (the trainer's config holds no sweep)."""
+        return member_hparams(self.config, self.agent, [0] * num_members)
 
     def init(self, base_seed, seed_indices, hparams: HyperParams | None = None) -> RunState:
         seeds = np.asarray(seed_indices, np.int32)

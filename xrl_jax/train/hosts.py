@@ -42,6 +42,16 @@ def sync(name: str) -> None:
         multihost_utils.sync_global_devices(name)
 
 
+def gathered(value) -> np.ndarray:
+    """Every process's ``value`` (a number or flag), in process order; with one process, ``[value]``.
+    For decisions all processes must take alike: stop now, checkpoint now, the group size."""
+    if jax.process_count() == 1:
+        return np.array([value])
+    from jax.experimental import multihost_utils
+
+    return np.asarray(multihost_utils.process_allgather(np.array([value]))).reshape(-1)
+
+
 def fetch(tree):
     """A pytree of (global) arrays as numpy: the whole array where this process holds all of it,
     else its own rows with the others left zero (read only the rows of :func:`local_rows`)."""

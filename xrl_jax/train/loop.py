@@ -314,12 +314,9 @@ class _HostLoop:
     def _plan(self, resume: bool) -> dict[str, Any]:
         cfg, paths, log = self.cfg, self.paths, self.log
         plan = plan_memory(self.trainer, cfg)
-        if jax.process_count() > 1:  # every process must run the same groups: the smallest plan wins
-            from jax.experimental import multihost_utils
-
-            smallest = int(np.min(multihost_utils.process_allgather(np.array([len(plan["groups"][0])]))))
-            if smallest < len(plan["groups"][0]):
-                plan = plan_memory(self.trainer, cfg.replace(max_group_size=smallest))
+        smallest = int(hosts.gathered(len(plan["groups"][0])).min())  # all processes run the same groups
+        if smallest < len(plan["groups"][0]):
+            plan = plan_memory(self.trainer, cfg.replace(max_group_size=smallest))
         devices = self.trainer.num_devices
         if resume and paths["plan"].exists():  # keep the grouping the checkpoints were made with
             stored = json.loads(paths["plan"].read_text())
@@ -523,11 +520,7 @@ class _HostLoop:
     def _agreed(self, wish: bool) -> bool:
         """True on every process when it is true on any (a stop signal or a checkpoint by wall time
         must be acted on by all processes at the same chunk, since checkpoints are collective)."""
-        if jax.process_count() == 1:
-            return bool(wish)
-        from jax.experimental import multihost_utils
-
-        return bool(np.any(multihost_utils.process_allgather(np.array([wish]))))
+        return bool(hosts.gathered(bool(wish)).any())
 
     def _save(self, ckpt, state, members, chunk_index: int, step: int, group_index: int) -> None:
         # A checkpoint can take up to the state's raw size on disk (compression helps only while the
@@ -610,8 +603,6 @@ def all_finite(tree) -> bool:
     """Whether every float leaf of a (global) pytree is finite, the same answer on every process."""
     if jax.process_count() == 1:
         return bool(tree_all_finite(tree))
-    from jax.experimental import multihost_utils
-
-    local = bool(np.all([np.all(np.isfinite(x)) for x in jax.tree.leaves(hosts.fetch(tree))
-                         if np.issubdtype(x.dtype, np.floating)]))  # fmt: skip
-    return bool(np.all(multihost_utils.process_allgather(np.array([local]))))
+    leaves = [x for x in jax.tree.leaves(hosts.fetch(tree)) if np.issubdtype(x.dtype, np.floating)]
+    local = all(np.all(np.isfinite(x)) for x in leaves)
+    return bool(hosts.gathered(local).all())
