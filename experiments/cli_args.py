@@ -4,6 +4,7 @@ argument types. Jax-free, so ``--help`` and bad input answer at once."""
 from __future__ import annotations
 
 import argparse
+import math
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -31,3 +32,14 @@ def positive_int(text: str) -> int:
 def non_negative_int(text: str) -> int:
     """argparse type: an integer >= 0, with a one-line error otherwise."""
     return _integer(text, 0, "non-negative")
+
+
+def positive_speed(text: str) -> float:
+    """argparse type: a finite speed > 0 in m/s, with a one-line error otherwise."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a speed in m/s, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive, finite speed in m/s, got {text}")
+    return value

@@ -119,3 +119,30 @@ def test_write_report_reads_a_folder_without_any_evaluation(tmp_path):
     folder = fake_run(tmp_path / "fresh", "tracking", "xdsac", "quick", [1.0, 2.0], missing=(0, 1))
     report = write_report([folder], tmp_path / "out").read_text()
     assert "incomplete: 0 of 2" in report
+
+
+def test_controller_rows_use_each_envs_evaluation_tracks(folders, tmp_path, monkeypatch):
+    """--controller: one hand-controller row per racing env, driven on the tracks its runs evaluate
+    on (the driving itself is tested in test_hand_controller.py; here a stand-in records the calls)."""
+    import xrl_jax.evaluate as evaluate_mod
+
+    calls = []
+
+    def fake_controller(scenario, eval_track_seed, episodes, target_speed):
+        calls.append((scenario, eval_track_seed, episodes, target_speed))
+        return {"target_speed": target_speed, "avg_return": 36.5, "avg_etr": 0.06, "episode_returns": []}
+
+    monkeypatch.setattr(evaluate_mod, "evaluate_hand_controller", fake_controller)
+    out = tmp_path / "with_controller"
+    write_report(list(folders.values()), out, controller_speed=9.0)
+    cfg = read_run(folders["sac"]).cfg
+    assert sorted(calls) == [
+        ("country_road", cfg.eval_track_seed, cfg.eval_episodes, 9.0),
+        ("tracking", cfg.eval_track_seed, cfg.eval_episodes, 9.0),
+    ]
+    table = (out / "results_tracking.md").read_text()
+    assert "| hand controller (9 m/s) |" in table and "36.50 (mean)" in table and "0.06 (mean)" in table
+    assert [r["env"] for r in json.loads((out / "controller.json").read_text())] == [
+        "country_road",
+        "tracking",
+    ]

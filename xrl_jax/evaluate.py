@@ -38,6 +38,22 @@ def make_evaluate(env, eval_params, agent, num_episodes: int):
 
     ``eval_params`` holds a bank of at least ``num_episodes`` tracks; episode ``i`` uses track ``i``.
     """
+
+    def policy(key, agent_state, obs, env_states, per_episode):
+        del env_states, per_episode  # an agent sees only its observation
+        return agent.act(key, agent_state, obs, "eval")
+
+    return make_evaluate_policy(env, eval_params, policy, num_episodes)
+
+
+def make_evaluate_policy(env, eval_params, policy, num_episodes: int):
+    """:func:`make_evaluate` for any ``policy(key, policy_state, obs, env_states, per_episode)``
+    returning the batch of actions; ``evaluate(key, policy_state)``.
+
+    A policy that reads the env state (the hand controller reads the centre line) gets it batched
+    over episodes, with ``per_episode(fn)``: ``fn(env_state, params)`` vmapped over the episodes,
+    each with its own track's params.
+    """
     bank_size = int(eval_params.tracks.num_points.shape[0])
     if bank_size < num_episodes:
         raise ValueError(f"the evaluation bank has {bank_size} tracks, fewer than {num_episodes} episodes")
@@ -56,10 +72,18 @@ def make_evaluate(env, eval_params, agent, num_episodes: int):
     def step_one(key, state, action, track, table):
         return env.step_env(key, state, action, own_params(track, table))
 
-    reset_all = jax.vmap(reset_one, in_axes=(0, 0, 0 if tables is not None else None))
-    step_all = jax.vmap(step_one, in_axes=(0, 0, 0, 0, 0 if tables is not None else None))
+    table_axis = 0 if tables is not None else None
+    reset_all = jax.vmap(reset_one, in_axes=(0, 0, table_axis))
+    step_all = jax.vmap(step_one, in_axes=(0, 0, 0, 0, table_axis))
 
-    def evaluate(key, agent_state):
+    def per_episode(fn):
+        def on_all(env_states):
+            one = lambda state, track, table: fn(state, own_params(track, table))
+            return jax.vmap(one, in_axes=(0, 0, table_axis))(env_states, tracks, tables)
+
+        return on_all
+
+    def evaluate(key, policy_state):
         reset_key, key = jax.random.split(key)
         obs, env_state = reset_all(jax.random.split(reset_key, num_episodes), tracks, tables)
         float_dtype = jnp.result_type(float)
@@ -84,7 +108,7 @@ def make_evaluate(env, eval_params, agent, num_episodes: int):
         def body(carry):
             obs, env_state, done, record, key, t = carry
             key, act_key, step_key = jax.random.split(key, 3)
-            action = agent.act(act_key, agent_state, obs, "eval")
+            action = policy(act_key, policy_state, obs, env_state, per_episode)
             obs, env_state, reward, terminated, truncated, info = step_all(
                 jax.random.split(step_key, num_episodes), env_state, action, tracks, tables
             )
@@ -196,6 +220,39 @@ def summarize_episodes(episodes: dict[str, Any]) -> dict[str, Any]:
         "avg_cones_hit": float(np.mean(episodes["cones_hit"])),
         "episode_returns": [round(float(r), 6) for r in returns],
     }
+
+
+def evaluate_hand_controller(
+    scenario: str, eval_track_seed: int, episodes: int, target_speed: float | None = None
+) -> dict[str, Any]:
+    """The hand controller's (:mod:`envs.hand_controller`) evaluation on a run's held-out tracks:
+    ``episodes`` episodes, episode ``i`` on track ``i`` of the bank of ``eval_track_seed`` (the
+    protocol of :func:`make_evaluate`), as :func:`summarize_episodes`'s averages. ``scenario`` is
+    ``"tracking"`` or ``"country_road"``; the controller drives with continuous actions whichever
+    action space the agents had (the tracks and rewards are the same)."""
+    import envs
+    from envs import hand_controller
+    from envs.racing import with_bank
+    from xrl_jax.train.tracks import cached_track_bank
+
+    if scenario not in ("tracking", "country_road"):
+        raise ValueError(f"the hand controller drives tracking or country_road, not {scenario!r}")
+    speed = hand_controller.DEFAULT_TARGET_SPEED if target_speed is None else float(target_speed)
+    if not (math.isfinite(speed) and speed > 0):
+        raise ValueError(f"the target speed must be a positive number of m/s, got {target_speed}")
+    bank = cached_track_bank(eval_track_seed, episodes)
+    env, params = envs.make(scenario, track=jax.tree.map(lambda leaf: leaf[0], bank))
+    eval_params = jax.jit(lambda p, b: env.prepare(with_bank(p, b)))(params, bank)
+
+    def policy(key, target, obs, env_states, per_episode):
+        del key, obs
+        return per_episode(lambda state, p: hand_controller.centre_line_action(env, state, p, target))(
+            env_states
+        )
+
+    evaluate = jax.jit(make_evaluate_policy(env, eval_params, policy, episodes))
+    episodes_out = jax.device_get(evaluate(jax.random.PRNGKey(0), jnp.asarray(speed)))
+    return {"target_speed": speed, **summarize_episodes(episodes_out)}
 
 
 def read_jsonl(path: Path) -> list[dict]:

@@ -113,6 +113,31 @@ def results_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
     return rows
 
 
+def controller_rows(
+    runs: list[Run], env: str, target_speed: float
+) -> tuple[list[dict[str, str]], list[dict]]:
+    """The hand controller's rows of ``env``'s table and its results, one per set of evaluation
+    tracks the env's plain runs used (normally one): its mean over those tracks, the yardstick of
+    docs/carenv-single-agent.md §8.3 (a deterministic driver has no seeds to take an IQM over)."""
+    if env not in ("tracking", "country_road"):
+        return [], []
+    metrics = evaluate_mod.summary_metrics(env)[:2]
+    track_sets = sorted({(r.cfg.eval_track_seed, r.cfg.eval_episodes) for r in runs
+                         if r.cfg.env == env and not r.is_sweep})  # fmt: skip
+    rows, results = [], []
+    for seed, episodes in track_sets:
+        result = evaluate_mod.evaluate_hand_controller(env, seed, episodes, target_speed)
+        results.append({"env": env, "eval_track_seed": seed, "episodes": episodes, **result})
+        row = {"agent": f"hand controller ({result['target_speed']:g} m/s)", "preset": "-", "steps": "-",
+               "seeds": f"{episodes} tracks (seed {seed})", "folder": "-"}  # fmt: skip
+        for key, label in metrics:
+            row[label] = f"{result[key]:.2f} (mean)"
+            row[f"paper: {label}"] = "-"
+        row["status"] = "complete"
+        rows.append(row)
+    return rows, results
+
+
 def markdown_table(rows: list[dict[str, str]]) -> str:
     if not rows:
         return "(no runs)"
@@ -150,9 +175,10 @@ def improvements(runs: list[Run], env: str, metric: str = "avg_return") -> list[
     return out
 
 
-def plot_env(runs: list[Run], env: str, path: Path) -> Path | None:
+def plot_env(runs: list[Run], env: str, path: Path, references: list[dict] | None = None) -> Path | None:
     """Final performance per agent (IQM and 95 % CI, the paper's Fig. 5/6) and the learning curves
-    (IQM line and CI band per agent, Fig. 7) of the env's plain runs, one PNG."""
+    (IQM line and CI band per agent, Fig. 7) of the env's plain runs, one PNG; each of
+    ``references`` (the hand controller's results) is drawn as a dashed line."""
     from matplotlib.figure import Figure
 
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["curve"]]
@@ -179,6 +205,10 @@ def plot_env(runs: list[Run], env: str, path: Path) -> Path | None:
         if names:
             bars.errorbar(estimates, range(len(names)), xerr=np.array(errors).T, fmt="o", capsize=4)
             bars.set_yticks(range(len(names)), names)
+        for reference in references or []:
+            name = f"hand controller, {reference['target_speed']:g} m/s"
+            bars.axvline(reference[key], color="black", linestyle="--", linewidth=1, label=name)
+            curves.axhline(reference[key], color="black", linestyle="--", linewidth=1, label=name)
         bars.set_title(f"{label} (IQM, 95 % CI)")
         curves.set_title(evaluate_mod._curve_label(label))
         curves.set_xlabel("environment steps per seed")
@@ -191,10 +221,12 @@ def plot_env(runs: list[Run], env: str, path: Path) -> Path | None:
     return path
 
 
-def write_report(folders: list[str | Path], out: str | Path) -> Path:
+def write_report(folders: list[str | Path], out: str | Path, controller_speed: float | None = None) -> Path:
     """Read ``folders`` and write ``out``/report.md with the tables (``results_<env>.md/.csv``),
     figures (``<env>.png``, ``sweep_<folder>.png``) and improvement probabilities
-    (``improvement.json``); returns the path of report.md."""
+    (``improvement.json``); returns the path of report.md. With ``controller_speed`` (m/s), the
+    racing tables and figures also show the hand controller driven on the runs' evaluation tracks
+    (``controller.json``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     runs = [read_run(folder) for folder in folders]
@@ -203,14 +235,19 @@ def write_report(folders: list[str | Path], out: str | Path) -> Path:
              "stands beside a run that used its protocol (`--preset paper`); other presets are shorter "
              "runs and are not comparable with it. Source of the paper's numbers: docs/paper_results.json.",
              ""]  # fmt: skip
-    all_improvements = []
+    all_improvements, all_references = [], []
     for env in sorted({r.cfg.env for r in runs}):
         lines += [f"## {env}", ""]
         rows = results_rows(runs, env)
+        references = []
+        if controller_speed is not None:
+            reference_rows, references = controller_rows(runs, env, controller_speed)
+            rows += reference_rows
+            all_references += references
         (out / f"results_{env}.md").write_text(markdown_table(rows) + "\n")
         (out / f"results_{env}.csv").write_text(csv_table(rows))
         lines += [markdown_table(rows), ""]
-        figure = plot_env(runs, env, out / f"{env}.png")
+        figure = plot_env(runs, env, out / f"{env}.png", references)
         if figure is not None:
             lines += [f"![{env}]({figure.name})", ""]
         found = improvements(runs, env)
@@ -228,6 +265,10 @@ def write_report(folders: list[str | Path], out: str | Path) -> Path:
                 lines += ["", f"Sweep {run.label}: {run.status()}", "", f"![sweep]({path.name})"]
         lines.append("")
     (out / "improvement.json").write_text(json.dumps(all_improvements, indent=2) + "\n")
+    if controller_speed is not None:
+        lines += ["The hand controller (docs/carenv-single-agent.md §8.3) follows the centre line at a "
+                  "target speed; its value is the mean over the evaluation tracks.", ""]  # fmt: skip
+        (out / "controller.json").write_text(json.dumps(all_references, indent=2) + "\n")
     report = out / "report.md"
     report.write_text("\n".join(lines) + "\n")
     return report
