@@ -1,6 +1,7 @@
 """Evaluate a finished run's agents again, on its training tracks or on its held-out tracks.
 
     python experiments/evaluate.py RESULTS_DIR [--tracks train|eval] [--episodes N] [--key K]
+                                   [--mode eval|deterministic]
 
 Every seed's agent (every member's, in a sweep) is restored from the run's newest checkpoint and
 driven with the run's evaluation
@@ -8,7 +9,8 @@ protocol (docs/algorithms.md §6.1) over the first N tracks of the chosen set, o
 ``train`` is the fixed training bank of a run with ``train_tracks`` > 0 (the gap to ``eval`` is the
 generalisation gap), ``eval`` the run's held-out evaluation tracks. Prints each seed's average return
 and early-termination rate and their IQM with its 95 % stratified bootstrap CI over seeds, and
-writes the same to ``RESULTS_DIR/evaluation_<tracks>.json``.
+writes the same to ``RESULTS_DIR/evaluation_<tracks>.json`` (``evaluation_<tracks>_deterministic.json``
+with ``--mode deterministic``, which drives XSAC greedily too).
 """
 
 from __future__ import annotations
@@ -33,6 +35,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--key", type=int, default=0, help="seed of the evaluation's random numbers (default 0)"
+    )
+    parser.add_argument(
+        "--mode",
+        choices=("eval", "deterministic"),
+        default="eval",
+        help="eval: each agent's evaluation policy as in the reference (XSAC samples, the others are "
+        "greedy; default); deterministic: greedy for every agent, XSAC at the approximate mode of its "
+        "mixture (docs/algorithms.md §3.9), a diagnostic outside the paper's protocol",
     )
     return parser
 
@@ -67,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     episodes = available if args.episodes is None else args.episodes
     if episodes > available:
         return fail(f"--episodes {episodes}: the run's {args.tracks} tracks are only {available}")
-    evaluate_one = evaluate_mod.make_evaluate(trainer.env, params, trainer.agent, episodes)
+    evaluate_one = evaluate_mod.make_evaluate(trainer.env, params, trainer.agent, episodes, args.mode)
     evaluate = jax.jit(jax.vmap(evaluate_one, in_axes=(None, 0)))
     results = jax.device_get(evaluate(jax.random.PRNGKey(args.key), agent_states))  # all seeds at once
     from xrl_jax.train.run_folder import member_fields
@@ -96,13 +106,15 @@ def main(argv: list[str] | None = None) -> int:
         "tracks": args.tracks,
         "episodes": episodes,
         "key": args.key,
+        "mode": args.mode,
         "per_seed": [{k: v for k, v in row.items() if k != "episode_returns"} for row in per_seed],
     }
     if cfg.num_points > 1:
         document["points"] = aggregates
     else:
         document["aggregate"] = aggregates[0]["aggregate"]
-    out = run / f"evaluation_{args.tracks}.json"
+    suffix = "" if args.mode == "eval" else f"_{args.mode}"
+    out = run / f"evaluation_{args.tracks}{suffix}.json"
     out.write_text(json.dumps(document, indent=2) + "\n")
     print(f"written: {out}")
     return 0

@@ -146,6 +146,13 @@ def test_evaluate_cli_drives_a_bank_runs_agents_on_its_training_and_held_out_tra
     final = json.loads((smoke_run / "summary.json").read_text())["per_seed"]
     for row in held_out["per_seed"]:
         assert abs(row["avg_return"] - final[str(row["seed"])]["avg_return"]) < 1e-3
+    # --mode deterministic is greedy for every agent; XDSAC already evaluates greedily: the same drive.
+    status, out, err = call(
+        evaluate_cli, capsys, str(smoke_run), "--tracks", "eval", "--mode", "deterministic"
+    )
+    assert status == 0, err
+    greedy = json.loads((smoke_run / "evaluation_eval_deterministic.json").read_text())
+    assert greedy["mode"] == "deterministic" and greedy["per_seed"] == held_out["per_seed"]
     status, out, err = call(evaluate_cli, capsys, str(smoke_run), "--tracks", "train", "--episodes", "2")
     assert status == 0, err
     assert "final return on 2 train tracks: IQM" in out
@@ -400,9 +407,15 @@ def test_resume_falls_back_past_a_damaged_checkpoint_and_says_so(run, capsys, tm
     data.write_bytes(bytes(damaged))
     status, stdout, err = call(run, capsys, "--resume", str(out), "--quiet")
     assert status == 0 and "final return" in stdout
-    assert err.strip().splitlines() == [
-        line for line in err.strip().splitlines() if "group_0/192 is damaged" in line and "step 128" in line
-    ] and err.strip()
+    assert (
+        err.strip().splitlines()
+        == [
+            line
+            for line in err.strip().splitlines()
+            if "group_0/192 is damaged" in line and "step 128" in line
+        ]
+        and err.strip()
+    )
     assert files_of(out, "metrics") == files_of(full, "metrics")  # recomputed from step 128, exactly
 
 

@@ -33,15 +33,19 @@ EARLY_TERMINATION_REWARD = -0.5
 EPISODE_FIELDS = ("return", "length", "terminated", "truncated", "last_reward", "track_velocity", "cones_hit")
 
 
-def make_evaluate(env, eval_params, agent, num_episodes: int):
+def make_evaluate(env, eval_params, agent, num_episodes: int, mode: str = "eval"):
     """``evaluate(key, agent_state) -> per-episode arrays`` (each ``(num_episodes,)``), jittable.
 
     ``eval_params`` holds a bank of at least ``num_episodes`` tracks; episode ``i`` uses track ``i``.
+    ``mode`` is the agent's acting mode: "eval" (the reference's, §3.8) or "deterministic" (greedy
+    for every agent, XSAC included: a diagnostic, not the paper's protocol).
     """
+    if mode not in ("eval", "deterministic"):
+        raise ValueError(f"an evaluation acts in mode 'eval' or 'deterministic', not {mode!r}")
 
     def policy(key, agent_state, obs, env_states, per_episode):
         del env_states, per_episode  # an agent sees only its observation
-        return agent.act(key, agent_state, obs, "eval")
+        return agent.act(key, agent_state, obs, mode)
 
     return make_evaluate_policy(env, eval_params, policy, num_episodes)
 
