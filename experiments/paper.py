@@ -1,13 +1,14 @@
 """The paper's whole protocol as one resumable campaign, then the report.
 
-    python experiments/paper.py --out DIR [--dry-run] [--preset paper] [--seeds 20] [--only NAME ...]
+    python experiments/paper.py --out DIR [--dry-run] [--preset paper] [--seeds 20] [--only PATTERN ...]
 
 Runs, one results folder each under DIR: every env x agent at the preset (20 seeds; Fig. 5-7), the
 kappa sweep of Fig. 8 (discrete Country Road, kappa = -0.01 ... 0.1) and the Table I variants (XSAC on
 Country Road with its mixture weights from hidden layer 1 and 2; layer 3 is the main XSAC run).
 A finished run is skipped, a started one resumed, so the same command continues a stopped campaign
 (Ctrl-C or SIGTERM stop the running run cleanly and end the campaign). At the end it writes the
-report (experiments/report.py) to DIR/report. ``--dry-run`` prints the plan instead: every run, its
+report (experiments/report.py, with the hand controller's score on the racing tracks unless
+--no-controller) to DIR/report. ``--dry-run`` prints the plan instead: every run, its
 members, the memory per member and the groups on this machine's devices, the FLOPs per update
 (XLA's cost analysis) and the device-hours they take at a stated throughput.
 """
@@ -15,6 +16,7 @@ members, the memory per member and the groups on this machine's devices, the FLO
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import json
 import sys
 from dataclasses import dataclass
@@ -112,8 +114,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--only",
         action="append",
         default=None,
-        metavar="NAME",
-        help="only the runs whose name contains NAME (repeatable), e.g. tracking-",
+        metavar="PATTERN",
+        help="only the runs of this name or shell-style pattern (repeatable), e.g. 'tracking-*'",
+    )
+    parser.add_argument(
+        "--no-controller",
+        action="store_true",
+        help="leave the hand controller out of the report (it takes ~30 s per racing env)",
     )
     parser.add_argument(
         "--utilisation",
@@ -220,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         return fail(f"--utilisation must be in (0, 1], got {args.utilisation}")
     runs = campaign()
     if args.only:
-        runs = [r for r in runs if any(part in r.name for part in args.only)]
+        runs = [r for r in runs if any(fnmatch.fnmatchcase(r.name, pattern) for pattern in args.only)]
         if not runs:
             return fail(
                 f"--only {' '.join(args.only)} matches no run; runs: {', '.join(r.name for r in campaign())}"
@@ -257,10 +264,11 @@ def main(argv: list[str] | None = None) -> int:
             return code
         if code != 0:
             failed.append(planned.name)
+    from envs.hand_controller import DEFAULT_TARGET_SPEED
     from xrl_jax.report import write_report
 
     folders = [out / r.name for r in runs if (out / r.name / "config.json").is_file()]
-    report = write_report(folders, out / "report")
+    report = write_report(folders, out / "report", None if args.no_controller else DEFAULT_TARGET_SPEED)
     print(f"report: {report}")
     if failed:
         print(

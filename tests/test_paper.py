@@ -21,17 +21,32 @@ def test_the_campaign_holds_every_figure_of_the_paper(paper):
 
 def test_dry_run_prints_the_plan_and_writes_nothing(paper, capsys, tmp_path):
     out = tmp_path / "campaign"
-    args = ["--out", str(out), "--dry-run", "--preset", "smoke", "--only", "tracking-d"]
+    args = ["--out", str(out), "--dry-run", "--preset", "smoke", "--only", "tracking-d*"]
     status, text, _ = call(paper, capsys, *args)
     assert status == 0 and not out.exists()
     (row,) = [line.split() for line in text.splitlines() if line.startswith("tracking-")]
     assert row[:5] == ["tracking-dsac", "Fig.", "6", "new", "20"]  # members: the default 20 seeds
     assert float(row[-3]) > 0 and "H100 hours at 25% of 67 TFLOP/s" in text  # GFLOP per update
+    # Patterns match whole names: the Country Road pair of Fig. 5 without the kappa sweep.
+    args = ["--out", str(out), "--dry-run", "--preset", "smoke", "--only", "country_road-*dsac"]
+    status, text, _ = call(paper, capsys, *args)
+    names = [line.split()[0] for line in text.splitlines() if line.startswith("country_road-")]
+    assert status == 0 and names == ["country_road-dsac", "country_road-xdsac"]
 
 
 def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     out = tmp_path / "campaign"
-    args = ["--out", str(out), "--preset", "smoke", "--seeds", "2", "--only", "tracking-dsac"]
+    args = [
+        "--out",
+        str(out),
+        "--preset",
+        "smoke",
+        "--seeds",
+        "2",
+        "--only",
+        "tracking-dsac",
+        "--no-controller",
+    ]
     status, text, err = call(paper, capsys, *args)
     assert status == 0, err
     assert (out / "tracking-dsac" / "summary.json").is_file() and (out / "report" / "report.md").is_file()
@@ -56,3 +71,4 @@ def test_the_whole_campaign_at_the_smoke_preset(paper, capsys, tmp_path):
     report = (out / "report" / "report.md").read_text()
     assert all(f"## {env}" in report for env in ("country_road", "tracking", "intersection"))
     assert (out / "report" / "sweep_country_road-xdsac-kappa.png").is_file()
+    assert report.count("| hand controller (8 m/s) |") == 2  # the two racing envs
