@@ -1,7 +1,7 @@
 """The hand-written centre-line driver of docs/carenv-single-agent.md §8.3: a reference score.
 
 An agent that cannot beat a three-line controller has not learned to drive, so the results put this
-controller's score beside the agents' on the same evaluation tracks. The spec defines it on the
+controller's score beside the agents' on the same evaluation tracks. §8.3 defines it on the
 Tracking observation (the 4th and 10th lookahead points, 8 m and 20 m ahead); here it reads those
 points from the track's centre line in the env state instead, so the same driver runs on Country
 Road, whose observation holds only cones. On Tracking both readings give the same action (a test
@@ -27,7 +27,7 @@ STEER_GAIN = 2.0 / 0.52  # twice the heading error, over the 0.52 rad the full s
 CURVE_ANGLE = 0.2  # rad: a bend ahead at least this sharp ...
 CURVE_SLOWDOWN = 0.6  # ... lowers the target speed to this fraction
 BRAKE_MARGIN = 2.0  # m/s above the target before braking
-DEFAULT_TARGET_SPEED = 8.0  # m/s; the spec measured 36.5 (8), 23.4 (12), 10.9 (16) on Tracking
+DEFAULT_TARGET_SPEED = 8.0  # m/s; §8.3 measured 36.5 (8), 23.4 (12), 10.9 (16) on Tracking
 
 
 def lookahead_angles(env: RacingEnv, state: RacingState, params: RacingParams):

@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="controller.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", required=True, choices=("tracking", "country_road"))
     parser.add_argument("--speeds", nargs="+", type=positive_speed, default=[8.0], metavar="M_PER_S",
-                        help="target speeds in m/s (default: 8, the spec's reference setting)")  # fmt: skip
+                        help="target speeds in m/s (default: 8, the reference setting of §8.3)")  # fmt: skip
     parser.add_argument("--episodes", type=positive_int, default=100,
                         help="evaluation tracks, one episode each (default 100, as a run)")  # fmt: skip
     parser.add_argument("--eval-track-seed", type=non_negative_int, default=1,

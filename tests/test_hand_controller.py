@@ -1,5 +1,5 @@
 """The hand controller of docs/carenv-single-agent.md §8.3 (envs.hand_controller): on Tracking it
-acts as the spec's observation-based definition does; it drives Country Road exactly as Tracking
+acts as §8.3's observation-based definition does; it drives Country Road exactly as Tracking
 (same tracks, same physics; only the cone penalties differ); its CLI and one-line errors."""
 
 import json
@@ -18,7 +18,7 @@ controller_cli = load_script("controller", "controller_cli")
 SPEED_SCALE = 51.86737451785755  # the odometry observation's velocity normaliser (top speed, m/s)
 
 
-def spec_action(obs, target_speed):
+def documented_action(obs, target_speed):
     """§8.3 as written, from the Tracking observation: lookahead rows 4 and 10, de-normalised speed."""
     traj = obs["trajectory_set"]
     steer = jnp.clip(2.0 * jnp.arctan2(traj[4, 3], traj[4, 2]) / 0.52, -1.0, 1.0)
@@ -30,7 +30,7 @@ def spec_action(obs, target_speed):
     return jnp.stack([steer, throttle, brake]), speed, curve, target
 
 
-def test_on_tracking_the_state_reading_equals_the_specs_observation_reading():
+def test_on_tracking_the_state_reading_equals_the_documented_observation_reading():
     env, params = envs.make("tracking", track_bank_size=2, track_seed=3)
     speed = 10.0
 
@@ -41,7 +41,7 @@ def test_on_tracking_the_state_reading_equals_the_specs_observation_reading():
         def body(carry, _):
             obs, state = carry
             ours = hand_controller.centre_line_action(env, state, params, speed)
-            theirs, obs_speed, curve, target = spec_action(obs, speed)
+            theirs, obs_speed, curve, target = documented_action(obs, speed)
             true_speed = body_velocity(state.vehicle)[0]
             obs, state, *_ = env.step(key, state, ours, params)  # auto-resets: several episodes
             return (obs, state), (ours, theirs, true_speed, obs_speed, curve, target)
