@@ -185,21 +185,24 @@ def plot_env(runs: list[Run], env: str, path: Path, references: list[dict] | Non
     if not plain:
         return None
     metrics = evaluate_mod.summary_metrics(env)[:2]
-    figure = Figure(figsize=(9.0, 6.0), layout="constrained")
+    algos = [r.cfg.algo for r in plain]
+    # The agent's name says it all when each agent has one run here; otherwise preset and folder too.
+    labels = [r.cfg.algo if algos.count(r.cfg.algo) == 1 else r.label for r in plain]
+    figure = Figure(figsize=(10.0, 6.5), layout="constrained")
     axes = figure.subplots(2, 2)
     for column, (key, label) in enumerate(metrics):
         bars, curves = axes[0][column], axes[1][column]
         names, estimates, errors = [], [], []
-        for index, run in enumerate(plain):
+        for index, (run, label_of_run) in enumerate(zip(plain, labels, strict=True)):
             agg = run.summary["aggregate"].get(key)
             if agg:
-                names.append(run.label)
+                names.append(label_of_run)
                 estimates.append(agg["estimate"])
                 errors.append([agg["estimate"] - agg["low"], agg["high"] - agg["estimate"]])
             points = [p for p in run.summary["curve"] if key in p]
             steps = [p["step"] for p in points]
             colour = f"C{index}"
-            curves.plot(steps, [p[key]["estimate"] for p in points], color=colour, label=run.label)
+            curves.plot(steps, [p[key]["estimate"] for p in points], color=colour, label=label_of_run)
             curves.fill_between(steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
                                 color=colour, alpha=0.2, linewidth=0)  # fmt: skip
         if names:
