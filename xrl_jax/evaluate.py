@@ -234,19 +234,15 @@ def evaluate_hand_controller(
     protocol of :func:`make_evaluate`), as :func:`summarize_episodes`'s averages. ``scenario`` is
     ``"tracking"`` or ``"country_road"``; the controller drives with continuous actions whichever
     action space the agents had (the tracks and rewards are the same)."""
-    import envs
     from envs import hand_controller
-    from envs.racing import with_bank
-    from xrl_jax.train.tracks import cached_track_bank
+    from xrl_jax.train.tracks import cached_track_bank, racing_env
 
     if scenario not in ("tracking", "country_road"):
         raise ValueError(f"the hand controller drives tracking or country_road, not {scenario!r}")
     speed = hand_controller.DEFAULT_TARGET_SPEED if target_speed is None else float(target_speed)
     if not (math.isfinite(speed) and speed > 0):
         raise ValueError(f"the target speed must be a positive number of m/s, got {target_speed}")
-    bank = cached_track_bank(eval_track_seed, episodes)
-    env, params = envs.make(scenario, track=jax.tree.map(lambda leaf: leaf[0], bank))
-    eval_params = jax.jit(lambda p, b: env.prepare(with_bank(p, b)))(params, bank)
+    env, eval_params = racing_env(scenario, cached_track_bank(eval_track_seed, episodes))
 
     def policy(key, target, obs, env_states, per_episode):
         del key, obs

@@ -76,13 +76,22 @@ def make_envs(cfg: TrainConfig):
     if cfg.multi_agent:
         env, params = envs.make(cfg.env_name)
         return env, params, params.replace(max_vehicles=8)
-    from envs.racing import with_bank
 
     eval_bank = cached_track_bank(cfg.eval_track_seed, cfg.eval_episodes)
-    train_bank = eval_bank if cfg.fresh_tracks else cached_track_bank(cfg.track_seed, cfg.train_tracks)
-    first = jax.tree.map(lambda leaf: leaf[:1], train_bank)
+    if cfg.fresh_tracks:  # the feed brings the tracks; the bank is a one-track template
+        train_bank = jax.tree.map(lambda leaf: leaf[:1], eval_bank)
+    else:
+        train_bank = cached_track_bank(cfg.track_seed, cfg.train_tracks)
+    return racing_env(cfg.env_name, train_bank, eval_bank)
+
+
+def racing_env(env_name: str, *banks):
+    """``(env, params_1, ..., params_n)``: racing scenario ``env_name`` and, per track bank, params
+    that hold it with its ring tables and reset cache (each bank prepared in one compiled call)."""
+    import envs
+    from envs.racing import with_bank
+
     # A user track: envs.make generates nothing.
-    env, params = envs.make(cfg.env_name, track=jax.tree.map(lambda leaf: leaf[0], first))
-    # Tables and reset cache of every track, each in one compiled call.
+    env, params = envs.make(env_name, track=jax.tree.map(lambda leaf: leaf[0], banks[0]))
     attach = jax.jit(lambda params, bank: env.prepare(with_bank(params, bank)))
-    return env, attach(params, first if cfg.fresh_tracks else train_bank), attach(params, eval_bank)
+    return (env, *(attach(params, bank) for bank in banks))
