@@ -407,7 +407,7 @@ def bench_update(
     }
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bench.py", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     env_parser = sub.add_parser("env", help="environment steps per second (random actions, auto-reset)")
@@ -456,6 +456,11 @@ def main(argv: list[str] | None = None) -> int:
     tk_parser.add_argument("--seeds", nargs="+", type=int, default=[1, 4, 20])
     tk_parser.add_argument("--count", type=int, default=64, help="tracks per seed and refill (half a feed)")
     tk_parser.add_argument("--repeats", type=int, default=3)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "train" and max(args.devices) > 1:
         # A CPU host becomes that many XLA devices (read when the backend starts, i.e. below).

@@ -6,7 +6,6 @@ state (what ``run.py`` saves has the same structure), so no training has to comp
 trains a real smoke run first.
 """
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -14,25 +13,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from PIL import Image
-from train_support import one_line_error, prepare_cache
+from train_support import load_script, one_line_error, prepare_cache
 
-ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--width", "320", "--height", "180", "--max-steps", "5"]
 # 20 steps: the untrained cars leave the road and their slots are refilled by new cars
 SMALL_INTERSECTION = ["--width", "320", "--height", "180", "--max-steps", "20"]
 
 
-def load_script(name):
-    spec = importlib.util.spec_from_file_location(f"{name}_cli", ROOT / "experiments" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def cli(tmp_path_factory):
     prepare_cache(tmp_path_factory.mktemp("cache"))
-    return load_script("explain")
+    return load_script("explain", "explain_cli")
 
 
 def make_run_folder(folder: Path, env: str, algo: str) -> Path:
@@ -141,7 +132,7 @@ def test_bad_input_fails_with_one_line(cli, xdsac_run, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_cli_on_a_trained_smoke_run(cli, tmp_path, capsys):
-    run = load_script("run")
+    run = load_script("run", "run_cli_for_explain")
     out = tmp_path / "trained"
     assert (
         run.main(

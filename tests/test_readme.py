@@ -19,3 +19,40 @@ def test_every_python_block_of_the_readme_runs_in_order():
     explanation = namespace["explanation"]
     assert explanation.policy.component_probs().shape[-1] == 12
     assert float(namespace["removed"]) <= 0.05
+
+
+SHELL_BLOCK = re.compile(r"^```bash\n(.*?)^```", re.MULTILINE | re.DOTALL)
+INLINE_COMMAND = re.compile(r"`(python experiments/[^`]+)`")
+
+
+def readme_commands() -> list[str]:
+    """Every ``python experiments/...`` command the README shows, in shell blocks (continuation lines
+    joined, ``&&`` chains split, ``srun`` dropped) or inline (across line breaks); synopses with
+    ``{a,b}`` or ``[...]`` are not commands and are left out."""
+    text = README.read_text(encoding="utf-8")
+    lines = [line for block in SHELL_BLOCK.findall(text) for line in block.replace("\\\n", " ").splitlines()]
+    pieces = [
+        piece.strip() for line in lines if not line.lstrip().startswith("#") for piece in line.split("&&")
+    ]
+    pieces += INLINE_COMMAND.findall(text)
+    commands = [" ".join(piece.removeprefix("srun ").split()) for piece in pieces]
+    return [c for c in commands if c.startswith("python experiments/") and not re.search(r"[{\[]", c)]
+
+
+def test_every_command_of_the_readme_parses():
+    """The arguments of each command the README shows are ones its script accepts (checked by the
+    script's own parser; running them would train)."""
+    import shlex
+
+    from train_support import load_script
+
+    commands = readme_commands()
+    assert len(commands) >= 15
+    for command in commands:
+        words = shlex.split(command)
+        name = words[1].removeprefix("experiments/").removesuffix(".py")
+        parser = load_script(name, f"{name}_for_readme").build_parser()
+        try:
+            parser.parse_args(words[2:])
+        except SystemExit as exc:
+            assert words[2:] == ["--help"] and exc.code == 0, f"README command does not parse: {command}"

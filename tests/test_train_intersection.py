@@ -1,15 +1,14 @@
 """Multi-agent training on the Intersection through the CLI: packed agent transitions, one update per
 agent transition after warm-up, periodic re-initialisation, evaluation with 8 vehicles."""
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from train_support import load_script
 
 from xrl_jax import train as train_mod
 
-ROOT = Path(__file__).resolve().parents[1]
 # 3 chunks of 64 env steps per seed (2 envs); warm-up = chunk 0; re-initialisation at env step 128.
 SMOKE = [
     "--env", "intersection", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--steps", "192",
@@ -19,9 +18,7 @@ SMOKE = [
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
-    spec = importlib.util.spec_from_file_location("run_cli_intersection", ROOT / "experiments" / "run.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("run", "run_cli_intersection")
     out = tmp_path_factory.mktemp("runs") / "intersection"
     assert module.main([*SMOKE, "--out", str(out)]) == 0
     return out
@@ -74,10 +71,7 @@ def test_evaluation_reports_trips_and_early_terminations_with_ci(smoke_run):
 
 
 def test_cli_offers_every_trainable_env():
-    spec = importlib.util.spec_from_file_location("run_cli_envs", ROOT / "experiments" / "run.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    assert module.ENVS == train_mod.ENVS
+    assert load_script("run", "run_cli_envs").ENVS == train_mod.ENVS
 
 
 def test_a_buffer_smaller_than_one_step_of_all_agents_is_refused():
