@@ -35,11 +35,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from xrl_jax.evaluate import evaluate_hand_controller
+    from xrl_jax.evaluate import hand_controller_evaluation
 
-    results = [
-        evaluate_hand_controller(args.env, args.eval_track_seed, args.episodes, v) for v in args.speeds
-    ]
+    score = hand_controller_evaluation(args.env, args.eval_track_seed, args.episodes)
+    results = [score(speed) for speed in args.speeds]
     print(f"hand controller on {args.env}, {args.episodes} evaluation tracks (seed {args.eval_track_seed})")
     print("| target speed (m/s) | mean return | ETR | speed along the track (m/s) | cones hit |")
     print("|---|---|---|---|---|")

@@ -226,22 +226,19 @@ def summarize_episodes(episodes: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def evaluate_hand_controller(
-    scenario: str, eval_track_seed: int, episodes: int, target_speed: float | None = None
-) -> dict[str, Any]:
-    """The hand controller's (:mod:`envs.hand_controller`) evaluation on a run's held-out tracks:
-    ``episodes`` episodes, episode ``i`` on track ``i`` of the bank of ``eval_track_seed`` (the
-    protocol of :func:`make_evaluate`), as :func:`summarize_episodes`'s averages. ``scenario`` is
-    ``"tracking"`` or ``"country_road"``; the controller drives with continuous actions whichever
-    action space the agents had (the tracks and rewards are the same)."""
+def hand_controller_evaluation(scenario: str, eval_track_seed: int, episodes: int):
+    """``score(target_speed=None) -> averages``: the hand controller (:mod:`envs.hand_controller`) on a
+    run's held-out tracks, ``episodes`` episodes, episode ``i`` on track ``i`` of the bank of
+    ``eval_track_seed`` (the protocol of :func:`make_evaluate`), as :func:`summarize_episodes`'s
+    averages. The tracks are prepared and the evaluation compiled once; the target speed is an input
+    of it, so scoring several speeds costs one compilation. ``scenario`` is ``"tracking"`` or
+    ``"country_road"``; the controller drives with continuous actions whichever action space the
+    agents had (the tracks and rewards are the same)."""
     from envs import hand_controller
     from xrl_jax.train.tracks import cached_track_bank, racing_env
 
     if scenario not in ("tracking", "country_road"):
         raise ValueError(f"the hand controller drives tracking or country_road, not {scenario!r}")
-    speed = hand_controller.DEFAULT_TARGET_SPEED if target_speed is None else float(target_speed)
-    if not (math.isfinite(speed) and speed > 0):
-        raise ValueError(f"the target speed must be a positive number of m/s, got {target_speed}")
     env, eval_params = racing_env(scenario, cached_track_bank(eval_track_seed, episodes))
 
     def policy(key, target, obs, env_states, per_episode):
@@ -251,8 +248,22 @@ def evaluate_hand_controller(
         )
 
     evaluate = jax.jit(make_evaluate_policy(env, eval_params, policy, episodes))
-    episodes_out = jax.device_get(evaluate(jax.random.PRNGKey(0), jnp.asarray(speed)))
-    return {"target_speed": speed, **summarize_episodes(episodes_out)}
+
+    def score(target_speed: float | None = None) -> dict[str, Any]:
+        speed = hand_controller.DEFAULT_TARGET_SPEED if target_speed is None else float(target_speed)
+        if not (math.isfinite(speed) and speed > 0):
+            raise ValueError(f"the target speed must be a positive number of m/s, got {target_speed}")
+        episodes_out = jax.device_get(evaluate(jax.random.PRNGKey(0), jnp.asarray(speed)))
+        return {"target_speed": speed, **summarize_episodes(episodes_out)}
+
+    return score
+
+
+def evaluate_hand_controller(
+    scenario: str, eval_track_seed: int, episodes: int, target_speed: float | None = None
+) -> dict[str, Any]:
+    """The hand controller's score at one target speed (:func:`hand_controller_evaluation`)."""
+    return hand_controller_evaluation(scenario, eval_track_seed, episodes)(target_speed)
 
 
 def read_jsonl(path: Path) -> list[dict]:
