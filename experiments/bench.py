@@ -3,7 +3,8 @@
     python experiments/bench.py env      [--scenarios tracking country_road] [--batches 1 64 1024 4096 8192]
     python experiments/bench.py intersection [--vehicles 1 2 4 8] [--batches 1 64 1024 4096] [--discrete]
     python experiments/bench.py matmul   [--size 2048]
-    python experiments/bench.py update   [--algos sac dsac xsac xdsac] [--widths 64 128 256] [--seeds 1 5 20]
+    python experiments/bench.py update   [--env tracking] [--algos sac dsac xsac xdsac] [--widths 64 128 256]
+                                         [--seeds 1 5 20] [--preset paper] [--batch-size B]
     python experiments/bench.py train    [--env tracking] [--algos xsac xdsac] [--seeds 1 5 20]
                                          [--widths 256 64] [--chunks 2] [--set KEY=VALUE ...]
                                          [--devices 1 2]  (members spread over that many devices)
@@ -204,6 +205,9 @@ def bench_train(
     from xrl_jax import train as T
 
     sets = {"log_interval": "2000", "warmup_steps": "256", **dict(item.split("=", 1) for item in overrides)}
+    # Evaluation and checkpoints happen between chunks (not timed): every chunk, so any preset fits.
+    sets.setdefault("eval_interval", sets["log_interval"])
+    sets.setdefault("checkpoint_interval", sets["log_interval"])
     if width is not None:
         sets.update(actor_width=str(width), critic_width=str(width))
     log_interval = int(sets["log_interval"])
@@ -218,6 +222,7 @@ def bench_train(
     state, metrics = trainer.chunk(state, np.int32(0))
     jax.block_until_ready(metrics)
     first_chunk_s = time.perf_counter() - start  # compile + one chunk (mostly warm-up)
+    updates_before = int(np.sum(np.asarray(metrics.metrics["train/updates"])))
     start = time.perf_counter()
     for c in range(1, chunks + 1):
         state, metrics = trainer.chunk(state, np.int32(c * cfg.chunk_vector_steps))
@@ -230,6 +235,7 @@ def bench_train(
     jax.block_until_ready(trainer.evaluate(state))
     eval_s = time.perf_counter() - start
     steps_timed = chunks * log_interval * seeds
+    updates = int(np.sum(np.asarray(metrics.metrics["train/updates"]))) - updates_before
     per_seed = T.estimate_seed_bytes(trainer)
     rate = steps_timed / seconds
     return {
@@ -241,7 +247,7 @@ def bench_train(
         "num_envs": cfg.num_envs,
         "batch_size": cfg.batch_size,
         "env_steps_per_s": rate,
-        "updates_per_s": rate,  # one gradient step per collected transition after warm-up
+        "updates_per_s": updates / seconds,  # racing: one per transition; Intersection: per acting vehicle
         "per_seed_env_steps_per_s": rate / seeds,
         "hours_for_1e6_steps_all_seeds": 1e6 * seeds / rate / 3600,
         "compile_s": {"setup_and_init": setup_s, "first_chunk": first_chunk_s, "first_eval": eval_first_s},
@@ -330,40 +336,20 @@ def _env_step_costs(env, template, init_feed, repeats: int, steps: int = 2000) -
     return {name: 1e6 * value / steps for name, value in seconds.items()}
 
 
-def bench_update(
-    algo: str, width: int, seeds: int, updates: int, repeats: int, batch_size: int = 256
-) -> dict:
-    """Gradient updates/s for one agent at Tracking shapes, ``seeds`` agent states vmapped.
+def real_batch(observations: dict, batch_size: int, discrete: bool, key) -> dict:
+    """A replay batch of ``batch_size`` observations and next observations drawn from real rollouts
+    (``xrl_jax.occupancy``), so that its sets hold as many objects as training sees; random actions
+    and rewards (they do not change the cost)."""
+    total = next(iter(observations.values())).shape[0]
+    k_obs, k_next, k_action, k_reward = jax.random.split(key, 4)
 
-    Every update reuses one random batch, so the number is the learner's cost alone (no buffer or env).
-    FLOPs per update come from XLA's cost analysis of one compiled update. The 2048² matmul ceiling
-    is timed alternately with the updates, and ``fraction_of_matmul`` compares the two.
-    """
-    from xrl_jax.agents import make_agent
-    from xrl_jax.config import preset
-    from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
+    def draw(k):
+        rows = np.asarray(jax.random.randint(k, (batch_size,), 0, total))
+        return {name: jnp.asarray(values[rows]) for name, values in observations.items()}
 
-    config = preset("paper", "tracking", algo).replace(actor_width=width, critic_width=width)
-    shape = ENV_OBSERVATIONS["tracking"]
-    discrete = algo in ("dsac", "xdsac")
-    agent = make_agent(config, dummy_observation(shape), 12 if discrete else 3)
-    key = jax.random.PRNGKey(0)
-    states = jax.jit(jax.vmap(agent.init))(jax.random.split(key, seeds))
-
-    def observation(key):
-        key_state, key_set = jax.random.split(key)
-        objects = jax.random.uniform(
-            key_set, (batch_size, shape.num_objects, shape.object_features), minval=-1
-        )
-        return {
-            "state": jax.random.uniform(key_state, (batch_size, shape.state_dim), minval=-1),
-            shape.set_key: objects.at[..., 0].set(1.0),
-        }
-
-    k_obs, k_next, k_action, k_reward = jax.random.split(jax.random.PRNGKey(1), 4)
-    batch = {
-        "obs": observation(k_obs),
-        "next_obs": observation(k_next),
+    return {
+        "obs": draw(k_obs),
+        "next_obs": draw(k_next),
         "action": (
             jax.random.randint(k_action, (batch_size,), 0, 12)
             if discrete
@@ -373,38 +359,107 @@ def bench_update(
         "terminated": jnp.zeros(batch_size, bool),
         "truncated": jnp.zeros(batch_size, bool),
     }
-    update_all = jax.vmap(agent.update, in_axes=(0, 0, None))
 
-    def run(states, key):
-        def body(states, key):
-            return update_all(jax.random.split(key, seeds), states, batch)[0], None
 
-        return jax.lax.scan(body, states, jax.random.split(key, updates))[0]
+def bench_update(
+    env: str,
+    algo: str,
+    width: int | None,
+    seeds: int,
+    updates: int,
+    repeats: int,
+    observations: dict,
+    preset_name: str = "paper",
+    batch_size: int | None = None,
+) -> dict:
+    """Gradient updates/s of one agent at ``env``'s shapes, ``seeds`` agent states vmapped (on the
+    named members axis, as the trainer does), on batches of real observations.
 
-    start = time.perf_counter()
-    compiled = jax.jit(run).lower(states, key).compile()
-    compile_s = time.perf_counter() - start
-    one_update = jax.jit(lambda s, k: update_all(jax.random.split(k, seeds), s, batch)[0])
-    analysis = one_update.lower(states, key).compile().cost_analysis()
-    analysis = analysis[0] if isinstance(analysis, list) else analysis
-    flops_per_update = float(analysis.get("flops", float("nan"))) / seeds
-    jax.block_until_ready(compiled(states, key))
+    When the preset packs the present objects (``packed_rows``), the packed update and the dense one
+    (``dense_sets``) are timed side by side, alternating with each other and with the 2048² matmul
+    ceiling, on the same batches and states; otherwise the one update and the ceiling. Every timed
+    call runs ``updates`` updates over as many batches. FLOPs per update come from XLA's cost analysis
+    of one compiled update (for the packed update: of its packed branches, xrl_jax.sets).
+    """
+    from xrl_jax.agents import make_agent
+    from xrl_jax.config import preset, preset_train_fields
+    from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
+    from xrl_jax.sets import MEMBERS_AXIS
+
+    config = preset(preset_name, env, algo)
+    if width is not None:
+        config = config.replace(actor_width=width, critic_width=width)
+    if batch_size is None:
+        batch_size = int(preset_train_fields(preset_name, env).get("batch_size", 256))
+    discrete = algo in ("dsac", "xdsac")
+    example = dummy_observation(ENV_OBSERVATIONS[env])
+    variants = {"packed": config} if config.packed_rows is not None else {}
+    variants["dense" if variants else "update"] = config.replace(dense_sets=True)
+    agents = {name: make_agent(c, example, 12 if discrete else 3) for name, c in variants.items()}
+    key = jax.random.PRNGKey(0)
+    any_agent = next(iter(agents.values()))
+    states = jax.jit(jax.vmap(any_agent.init))(jax.random.split(key, seeds))  # same parameters for all
+    batches = _stacked_batches(observations, batch_size, discrete, updates)
+
+    calls, out = {}, {"env": env, "algo": algo, "width": config.actor_width, "seeds": seeds,
+                      "batch_size": batch_size, "packed_rows": config.packed_rows}  # fmt: skip
+    for name, agent in agents.items():
+        update_all = jax.vmap(agent.update, in_axes=(0, 0, None), axis_name=MEMBERS_AXIS)
+
+        def run(states, key, update_all=update_all):
+            def body(states, inputs):
+                key, batch = inputs
+                return update_all(jax.random.split(key, seeds), states, batch)[0], None
+
+            return jax.lax.scan(body, states, (jax.random.split(key, updates), batches))[0]
+
+        start = time.perf_counter()
+        compiled = jax.jit(run).lower(states, key).compile()
+        compile_s = time.perf_counter() - start
+        one = jax.tree.map(lambda x: x[0], batches)
+        flops = update_flops(agent if name != "packed" else _packed_only(agent), states, one, seeds)
+        jax.block_until_ready(compiled(states, key))
+        calls[name] = lambda compiled=compiled: compiled(states, key)
+        out[name] = {"gflop_per_update": flops / 1e9, "compile_s": compile_s}
     matmul, matmul_flops = matmul_call()
-    seconds = timed_alternately({"update": lambda: compiled(states, key), "matmul": matmul}, repeats)
-    achieved = flops_per_update * updates * seeds / seconds["update"] / 1e9
+    seconds = timed_alternately({**calls, "matmul": matmul}, repeats)
     ceiling = matmul_flops / seconds["matmul"] / 1e9
-    return {
-        "algo": algo,
-        "width": width,
-        "seeds": seeds,
-        "batch_size": batch_size,
-        "updates_per_s_per_seed": updates / seconds["update"],
-        "gflop_per_update": flops_per_update / 1e9,
-        "achieved_gflops": achieved,
-        "matmul_gflops": ceiling,
-        "fraction_of_matmul": achieved / ceiling,
-        "compile_s": compile_s,
-    }
+    out["matmul_gflops"] = ceiling
+    for name in calls:
+        achieved = out[name]["gflop_per_update"] * updates * seeds / seconds[name]
+        out[name].update(
+            updates_per_s_per_seed=updates / seconds[name],
+            achieved_gflops=achieved,
+            fraction_of_matmul=achieved / ceiling,
+        )
+    if "packed" in calls:
+        out["packed_time_over_dense"] = seconds["packed"] / seconds["dense"]
+    return out
+
+
+def _stacked_batches(observations: dict, batch_size: int, discrete: bool, count: int) -> dict:
+    keys = jax.random.split(jax.random.PRNGKey(1), count)
+    batches = [real_batch(observations, batch_size, discrete, k) for k in keys]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *batches)
+
+
+def _packed_only(agent):
+    """The same agent with its packed computation compiled alone (no dense fallback), to count the
+    FLOPs that run: XLA's cost analysis counts the larger branch of a conditional."""
+    from xrl_jax.agents import make_agent
+
+    return make_agent(agent.config, agent.dummy_observation(), agent.action_size, packing_fallback=False)
+
+
+def update_flops(agent, states, batch: dict, seeds: int) -> float:
+    """XLA's FLOPs of one update per member (cost analysis of the compiled, vmapped update)."""
+    from xrl_jax.sets import MEMBERS_AXIS
+
+    update_all = jax.vmap(agent.update, in_axes=(0, 0, None), axis_name=MEMBERS_AXIS)
+    one = jax.jit(lambda s, k: update_all(jax.random.split(k, seeds), s, batch)[0])
+    analysis = one.lower(states, jax.random.PRNGKey(0)).compile().cost_analysis()
+    analysis = analysis[0] if isinstance(analysis, list) else analysis
+    return float(analysis.get("flops", float("nan"))) / seeds
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -425,7 +480,12 @@ def build_parser() -> argparse.ArgumentParser:
     ix_parser.add_argument("--discrete", action="store_true", help="the Discrete(12) variant")
     mm_parser = sub.add_parser("matmul", help="float32 matmul GFLOP/s of the default device")
     mm_parser.add_argument("--size", type=int, default=2048)
-    up_parser = sub.add_parser("update", help="agent updates/s per seed at Tracking shapes, FLOPs per update")
+    up_parser = sub.add_parser(
+        "update", help="agent updates/s per seed on real batches, packed beside dense, FLOPs per update"
+    )
+    up_parser.add_argument("--env", default="tracking", choices=["tracking", "country_road", "intersection"])
+    up_parser.add_argument("--preset", default="paper", choices=PRESETS, help="the agents' preset")
+    up_parser.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
     up_parser.add_argument(
         "--algos",
         nargs="+",
@@ -438,7 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr_parser = sub.add_parser(
         "train", help="end-to-end training env-steps/s (updates included), compile, memory"
     )
-    tr_parser.add_argument("--env", default="tracking", choices=["tracking", "country_road"])
+    tr_parser.add_argument("--env", default="tracking", choices=["tracking", "country_road", "intersection"])
     tr_parser.add_argument(
         "--algos", nargs="+", default=["xsac", "xdsac"], choices=["sac", "dsac", "xsac", "xdsac"]
     )
@@ -505,12 +565,22 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "update":
         if min(args.widths) < 1 or min(args.seeds) < 1 or args.repeats < 1:
             parser.error("--widths, --seeds and --repeats must be positive")
+        if args.batch_size is not None and args.batch_size < 1:
+            parser.error("--batch-size must be positive")
+        from xrl_jax.occupancy import rollout_observations
+
+        observations = rollout_observations(args.env)["observations"]
         report["results"] = []
         for width in args.widths:
             for seeds in args.seeds:
                 for algo in args.algos:
                     updates = max(2, 40 * 64 // (width * seeds))  # keep each timed call ~1 s or more
-                    report["results"].append(bench_update(algo, width, seeds, updates, args.repeats))
+                    report["results"].append(
+                        bench_update(
+                            args.env, algo, width, seeds, updates, args.repeats, observations,
+                            args.preset, args.batch_size,
+                        )
+                    )  # fmt: skip
     elif args.command == "tracks":
         if min(args.seeds) < 1 or args.count < 1 or args.repeats < 1:
             parser.error("--seeds, --count and --repeats must be positive")

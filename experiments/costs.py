@@ -1,10 +1,14 @@
 """Parameter counts and inference FLOPs per action on Country Road shapes, next to the paper's Table I.
 
-    python experiments/costs.py            # table on stdout
-    python experiments/costs.py --json     # the same numbers as JSON
+    python experiments/costs.py                      # table on stdout
+    python experiments/costs.py --json               # the same numbers as JSON
+    python experiments/costs.py --measure-occupancy  # re-measure docs/set_occupancy.json (~1 min)
 
-FLOPs are XLA's own count (``cost_analysis`` of the compiled acting function, 100 present cones), and
-an analytic dense-layer count beside it. The mixture actor acts through the fast path
+FLOPs are XLA's own count (``cost_analysis`` of the compiled acting function): on every one of the 100
+cone slots (the paper's count), and as it runs — the per-object layers on the present cones only
+(xrl_jax.sets), packed into the rows one observation reserves, weighted with the measured chance
+(docs/set_occupancy.json) that an observation holds more cones and is computed on every slot; an
+analytic dense-layer count beside them. The mixture actor acts through the fast path
 (docs/algorithms.md §3.7): layers up to the weight-branch depth φ_d run for every object, the rest of
 the trunk and the heads for the one sampled object only — which is why φ_d = 1 costs a small fraction
 of φ_d = 3. The parameter counts, the analytic count and the helpers that build the Country Road
@@ -58,10 +62,11 @@ def mixture_actor_sample_flops(
     return num_objects * shared + (1 if fast else num_objects) * rest
 
 
-def country_road_networks(algo: str, **overrides: Any) -> networks.Networks:
-    """The paper's Country Road networks of ``algo`` (3 continuous actions), with config overrides."""
+def country_road_networks(algo: str, packing_fallback: bool = True, **overrides: Any) -> networks.Networks:
+    """The paper's Country Road networks of ``algo`` (3 continuous actions), with config overrides
+    (``packing_fallback=False``: the packed computation alone, for counting its FLOPs)."""
     config = preset("paper", "country_road", algo).replace(**overrides)
-    return networks.make_networks(config, networks.ENV_OBSERVATIONS["country_road"], 3)
+    return networks.make_networks(config, networks.ENV_OBSERVATIONS["country_road"], 3, packing_fallback)
 
 
 def sac_actor_outputs(actor, params, obs) -> tuple:
@@ -77,58 +82,96 @@ def xla_flops(fn, *args) -> float:
     return float(analysis["flops"])
 
 
+def acting_flops(nets: networks.Networks, params, obs, key) -> float:
+    """XLA's FLOPs of one action: the SAC actor's deterministic forward pass, the mixture's fast path."""
+    if nets.config.algo == "sac":
+        return xla_flops(lambda p, o: sac_actor_outputs(nets.actor, p, o), params, obs)
+    return xla_flops(lambda p, o, k: nets.actor.apply(p, o, k, method="sample_fast"), params, obs, key)
+
+
 def measure() -> list[dict]:
+    from xrl_jax.occupancy import load_occupancy, overflow_probability
+    from xrl_jax.sets import Packing
+
     shape = networks.ENV_OBSERVATIONS["country_road"]
     obs = networks.dummy_observation(shape)
     obs["cones_set"] = obs["cones_set"].at[:, 0].set(1.0)  # every cone slot present: the worst case
     key = jax.random.key(0)
+    histogram = load_occupancy()["country_road"]["histogram"]
     rows = []
-
-    nets = country_road_networks("sac")
-    params = jax.jit(nets.init_actor)(key)
-    rows.append(
-        {
-            "model": "baseline (SAC, Deep Set)",
+    for name, algo, depth in [
+        ("baseline (SAC, Deep Set)", "sac", None),
+        *[(f"XSAC φ_d={d}", "xsac", d) for d in (1, 2, 3)],
+    ]:
+        overrides = {} if depth is None else {"weight_depth": depth}
+        nets = country_road_networks(algo, dense_sets=True, **overrides)
+        params = jax.jit(nets.init_actor)(key)
+        packed_only = country_road_networks(algo, packing_fallback=False, **overrides)
+        dense, packed = (acting_flops(n, params, obs, key) for n in (nets, packed_only))
+        capacity = Packing(nets.config.packed_rows).capacity(1, shape.num_objects)
+        fallback = overflow_probability(histogram, 1, capacity)
+        row = {
+            "model": name,
             "params": count_params(params),
-            "flops_xla": xla_flops(lambda p, o: sac_actor_outputs(nets.actor, p, o), params, obs),
+            "flops_xla": dense,
+            "flops_packed": packed,
+            "packed_capacity": capacity,
+            "fallback_probability": fallback,
+            "flops_as_run": (1 - fallback) * packed + fallback * dense,
             "flops_analytic": None,
         }
-    )
-    for depth in (1, 2, 3):
-        nets = country_road_networks("xsac", weight_depth=depth)
-        config = nets.config
-        params = jax.jit(nets.init_actor)(key)
-        input_dim = shape.object_features + shape.state_dim
-        analytic = mixture_actor_sample_flops(
-            shape.num_objects, input_dim, config.actor_width, config.actor_depth, depth, 6, fast=True
-        )
-        rows.append(
-            {
-                "model": f"XSAC φ_d={depth}",
-                "params": count_params(params),
-                "flops_xla": xla_flops(
-                    lambda p, o, k, actor=nets.actor: actor.apply(p, o, k, method="sample_fast"),
-                    params,
-                    obs,
-                    key,
-                ),
-                "flops_analytic": analytic,
-            }
-        )
-    for row in rows:
-        row["paper_flops"] = PAPER[row["model"]]["flops"]
-        row["paper_params"] = PAPER[row["model"]]["params"]
+        if depth is not None:
+            config = nets.config
+            row["flops_analytic"] = mixture_actor_sample_flops(
+                shape.num_objects,
+                shape.object_features + shape.state_dim,
+                config.actor_width,
+                config.actor_depth,
+                depth,
+                6,
+                fast=True,
+            )
+        row["paper_flops"] = PAPER[name]["flops"]
+        row["paper_params"] = PAPER[name]["params"]
+        rows.append(row)
     return rows
+
+
+def measure_occupancy() -> dict:
+    """Drive every scenario as xrl_jax.occupancy describes and write docs/set_occupancy.json."""
+    from xrl_jax import occupancy
+
+    table = {
+        scenario: occupancy.summarise(scenario, occupancy.rollout_observations(scenario))
+        for scenario in occupancy.SCENARIOS
+    }
+    lines = [f"  {json.dumps(k)}: {json.dumps(v, ensure_ascii=False)}" for k, v in table.items()]
+    occupancy.OCCUPANCY_FILE.write_text("{\n" + ",\n".join(lines) + "\n}\n")
+    return table
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="costs.py", description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser.add_argument(
+        "--measure-occupancy",
+        action="store_true",
+        help="drive every scenario and rewrite docs/set_occupancy.json (present objects per set)",
+    )
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.measure_occupancy:
+        table = measure_occupancy()
+        for scenario, entry in table.items():
+            print(
+                f"{scenario:<14} {entry['observations']:>7} observations, {entry['slots']} slots: mean "
+                f"{entry['mean']}, p50 {entry['p50']}, p90 {entry['p90']}, p99 {entry['p99']}, "
+                f"max {entry['max']}"
+            )
+        return 0
     rows = measure()
     if args.json:
         json.dump(rows, sys.stdout, indent=2)
@@ -138,17 +181,24 @@ def main(argv: list[str] | None = None) -> int:
     def fmt(value) -> str:
         return "–" if value is None else f"{value:,.0f}"
 
-    header = f"{'model':<26}{'params':>10}{'paper':>10}{'FLOPs (XLA)':>14}{'analytic':>14}{'paper':>14}"
+    header = (
+        f"{'model':<26}{'params':>10}{'paper':>10}{'FLOPs (XLA)':>14}{'analytic':>14}{'paper':>14}"
+        f"{'as run':>14}"
+    )
     print(header)
     print("-" * len(header))
     for r in rows:
         print(
             f"{r['model']:<26}{fmt(r['params']):>10}{fmt(r['paper_params']):>10}"
             f"{fmt(r['flops_xla']):>14}{fmt(r['flops_analytic']):>14}{fmt(r['paper_flops']):>14}"
+            f"{fmt(r['flops_as_run']):>14}"
         )
     print(
-        "\nXLA's count includes activations and the sampling ops (+2.6 kFLOP for XSAC, -3.8 kFLOP for the "
-        "baseline's deterministic forward); the analytic column counts dense layers only."
+        "\nFLOPs (XLA): every one of the 100 cone slots; it includes activations and the sampling ops "
+        "(+2.6 kFLOP for XSAC, -3.8 kFLOP for the baseline's deterministic forward); the analytic column "
+        "counts dense layers only. As run: the present cones packed into "
+        f"the {rows[0]['packed_capacity']} rows one observation reserves, or every slot with the measured "
+        f"probability {rows[0]['fallback_probability']:.3f} that an observation holds more cones."
     )
     return 0
 

@@ -59,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from xrl_jax import evaluate as evaluate_mod
     from xrl_jax.explain import RunError, load_trained_agents, read_run_config
+    from xrl_jax.sets import MEMBERS_AXIS
 
     try:
         cfg = read_run_config(run)
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     if episodes > available:
         return fail(f"--episodes {episodes}: the run's {args.tracks} tracks are only {available}")
     evaluate_one = evaluate_mod.make_evaluate(trainer.env, params, trainer.agent, episodes, args.mode)
-    evaluate = jax.jit(jax.vmap(evaluate_one, in_axes=(None, 0)))
+    evaluate = jax.jit(jax.vmap(evaluate_one, in_axes=(None, 0), axis_name=MEMBERS_AXIS))
     results = jax.device_get(evaluate(jax.random.PRNGKey(args.key), agent_states))  # all seeds at once
     from xrl_jax.train.run_folder import member_fields
 

@@ -9,8 +9,10 @@ A finished run is skipped, a started one resumed, so the same command continues 
 (Ctrl-C or SIGTERM stop the running run cleanly and end the campaign). At the end it writes the
 report (experiments/report.py, with the hand controller's score on the racing tracks unless
 --no-controller) to DIR/report. ``--dry-run`` prints the plan instead: every run, its
-members, the memory per member and the groups on this machine's devices, the FLOPs per update
-(XLA's cost analysis) and the device-hours they take at a stated throughput.
+members, the memory per member and the groups on this machine's devices, the FLOPs per update as
+it runs (XLA's cost analysis of the packed per-object layers, weighted with the measured chance
+that a batch holds too many objects for them; beside it the every-slot count; docs/performance.md)
+and the device-hours they take at a stated throughput.
 """
 
 from __future__ import annotations
@@ -33,7 +35,6 @@ KAPPAS = "-0.01,-0.001,0,0.001,0.01,0.1"
 # float32 on its datasheet, of which these small networks reach a fraction: --utilisation.
 CPU_FLOPS = 100e9
 H100_FLOPS = 67e12
-INTERSECTION_AGENTS_PER_STEP = 3.75  # the curriculum's mean vehicle count (1, 2, 4, 8): updates per env step
 
 
 @dataclass(frozen=True)
@@ -136,34 +137,14 @@ def fail(message: str) -> int:
     return 2
 
 
-def update_flops(trainer) -> float:
-    """FLOPs of one gradient step (XLA's cost analysis of the lowered update; nothing compiled)."""
-    import jax
-    import jax.numpy as jnp
-
-    agent, batch_size = trainer.agent, trainer.config.batch_size
-    obs = agent.dummy_observation((batch_size,))
-    flags = jnp.zeros(batch_size, bool)
-    batch = {
-        "obs": obs,
-        "action": agent.random_action(jax.random.PRNGKey(0), (batch_size,)),
-        "reward": jnp.zeros(batch_size),
-        "next_obs": obs,
-        "terminated": flags,
-        "truncated": flags,
-    }
-    state = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
-    cost = jax.jit(agent.update).lower(jax.random.PRNGKey(0), state, batch).cost_analysis()
-    cost = cost[0] if isinstance(cost, list) else cost
-    return float(cost.get("flops", float("nan")))
-
-
 def plan(runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation: float) -> list[dict]:
     """One row per run: its status, members, memory and groups on this machine, FLOPs and device-hours."""
     from xrl_jax.config import parse_overrides, parse_sweep, resolve_config
+    from xrl_jax.occupancy import load_occupancy, update_cost
     from xrl_jax.resources import format_bytes
     from xrl_jax.train import get_trainer, plan_memory
 
+    occupancy = load_occupancy()
     rows = []
     for run in runs:
         cfg = resolve_config(
@@ -176,10 +157,13 @@ def plan(runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation
         )
         trainer = get_trainer(cfg)
         memory = plan_memory(trainer, cfg)
-        flops = update_flops(trainer)
+        # FLOPs as they run: the packed update, or every slot when a batch overflows (by the measured
+        # occupancy of docs/set_occupancy.json, members sharing their branches as on one device).
+        cost = update_cost(trainer.agent, cfg.batch_size, cfg.num_members, occupancy)
+        flops = cost["expected"]
         per_member = max(cfg.total_steps - cfg.warmup_steps, 0)
-        if cfg.multi_agent:
-            per_member *= INTERSECTION_AGENTS_PER_STEP
+        if cfg.multi_agent:  # one update per acting vehicle: as many as measured per env step
+            per_member *= occupancy["intersection"]["acting_vehicles_per_env_step"]
         total = flops * per_member * cfg.num_members
         rows.append(
             {
@@ -192,6 +176,8 @@ def plan(runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation
                 "groups": len(memory["groups"]),
                 "devices": memory["devices"],
                 "gflop_per_update": flops / 1e9,
+                "dense_gflop_per_update": cost["dense"] / 1e9,
+                "fallback_probability": cost["fallback_probability"],
                 "pflop_total": total / 1e15,
                 "cpu_hours": total / CPU_FLOPS / 3600,
                 "h100_hours": total / (H100_FLOPS * utilisation) / 3600,
@@ -203,14 +189,14 @@ def plan(runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation
 def print_plan(rows: list[dict], utilisation: float) -> None:
     header = (
         f"{'run':<30} {'for':<8} {'status':<8} {'members':>7} {'memory/member':>13} {'groups':>6} "
-        f"{'GFLOP/upd':>9} {'CPU h':>10} {'H100 h':>8}"
+        f"{'GFLOP/upd':>9} {'dense':>7} {'CPU h':>10} {'H100 h':>8}"
     )
     print(header)
     for r in rows:
         print(
             f"{r['run']:<30} {r['figure']:<8} {r['status']:<8} {r['members']:>7} "
             f"{r['memory_per_member']:>13} {r['groups']:>6} {r['gflop_per_update']:>9.3g} "
-            f"{r['cpu_hours']:>10,.1f} {r['h100_hours']:>8,.2f}"
+            f"{r['dense_gflop_per_update']:>7.3g} {r['cpu_hours']:>10,.1f} {r['h100_hours']:>8,.2f}"
         )
     todo = [r for r in rows if r["status"] != "done"]
     cpu, h100 = sum(r["cpu_hours"] for r in todo), sum(r["h100_hours"] for r in todo)

@@ -280,7 +280,8 @@ def test_gaussian_actor_policy_masks_absent_objects(gaussian_actor, small_obs):
     assert out.means.shape == (*BATCH, 7, 2, 3)
     np.testing.assert_array_equal(out.present[..., :4], True)
     np.testing.assert_array_equal(out.present[..., 4:], False)
-    np.testing.assert_allclose(out.mixture_logits.mean(-1), 0.0, atol=1e-6)  # centred over all slots
+    # centred over the slots that carry weight (§3.1 step 2 over the present ones: softmax-neutral)
+    np.testing.assert_allclose(out.mixture_logits[..., :4].mean(-1), 0.0, atol=1e-6)
     weights = object_weights(out)
     np.testing.assert_array_equal(weights[..., 4:], 0.0)
     assert bool(jnp.all(weights[..., :4] > 0))

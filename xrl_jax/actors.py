@@ -17,16 +17,25 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from xrl_jax import sets
 from xrl_jax.distributions import LOG_STD_MAX, MIXTURE_LOG_STD_MIN, clip_log_std, masked_logits, sample_slot
-from xrl_jax.extractors import MLP, Observation, object_inputs
+from xrl_jax.extractors import MLP, ObjectStateDense, Observation, object_rows
 
 Array = jax.Array
 
 
 def centre(logits: Array) -> Array:
-    """Logits minus their mean over the last axis: the mixture logits over **all** slots (§3.1 step 2)
-    and the action logits of the categorical heads; a no-op for the softmax."""
+    """Logits minus their mean over the last axis: the action logits of the categorical heads; a no-op
+    for the softmax."""
     return logits - jnp.mean(logits, axis=-1, keepdims=True)
+
+
+def centre_over(logits: Array, mask: Array) -> Array:
+    """Mixture logits minus their mean over the slots of ``mask`` (§3.1 step 2, over the slots that
+    carry weight: §3.1 allows dropping the centring, a no-op for the masked softmax and its gradient;
+    centring over the weighted slots only keeps it computable from the present objects alone)."""
+    count = jnp.maximum(jnp.sum(mask, axis=-1, keepdims=True), 1).astype(logits.dtype)
+    return logits - jnp.sum(jnp.where(mask, logits, 0.0), axis=-1, keepdims=True) / count
 
 
 # ---------------------------------------------------------------------------------------------
@@ -50,8 +59,9 @@ def _select_object(values: Array, index: Array) -> Array:
 class GaussianMixtureOutput:
     """Full XSAC actor output for every object slot (§4.3 explanation outputs), raw.
 
-    means, log_stds: (..., O, C, A), log_stds not clipped; mixture_logits: (..., O), centred over all
-    slots, absent slots not masked; present: (..., O) bool.
+    means, log_stds: (..., O, C, A), log_stds not clipped; mixture_logits: (..., O), centred over the
+    slots that carry weight, absent slots not masked; present: (..., O) bool. Slots without weight
+    hold the network's output on the padding row, or zeros when computed on present rows only.
     """
 
     means: Array
@@ -94,9 +104,10 @@ class FastSample:
 class _MyopicTrunk(nn.Module):
     """Shared per-object trunk with the φ branch after hidden layer ``weight_depth`` (1-based φ_d).
 
-    ``branch(x)`` runs layers 1..φ_d (the part needed for the mixture logits, all objects);
+    ``branch(objects, state)`` runs layers 1..φ_d (the part needed for the mixture logits, all
+    objects; the first layer joins each object to the state, :class:`ObjectStateDense`);
     ``rest(h)`` runs layers φ_d+1..depth (only needed for the action head, so the fast path runs it
-    for the sampled object only). ``uniform_mixture`` drops φ (all logits 0).
+    for the sampled object only). ``raw_logits`` is φ (uncentred); ``uniform_mixture`` drops φ.
     """
 
     width: int
@@ -105,12 +116,14 @@ class _MyopicTrunk(nn.Module):
     uniform_mixture: bool = False
 
     def setup(self):
-        self.layers = [nn.Dense(self.width, name=f"hidden_{i}") for i in range(self.depth)]
+        first = ObjectStateDense(self.width, name="hidden_0")
+        self.layers = [first] + [nn.Dense(self.width, name=f"hidden_{i}") for i in range(1, self.depth)]
         if not self.uniform_mixture:
             self.mixture_logit = nn.Dense(1, name="mixture_logit")
 
-    def branch(self, x: Array) -> Array:
-        for layer in self.layers[: self.weight_depth]:
+    def branch(self, objects: Array, state: Array, plan: sets.PresentRows | None = None) -> Array:
+        x = nn.relu(self.layers[0](objects, state, plan))
+        for layer in self.layers[1 : self.weight_depth]:
             x = nn.relu(layer(x))
         return x
 
@@ -119,32 +132,77 @@ class _MyopicTrunk(nn.Module):
             h = nn.relu(layer(h))
         return h
 
-    def mixture_logits(self, h: Array) -> Array:
-        """Centred mixture logits (..., O) from the branch output."""
+    def raw_logits(self, h: Array) -> Array:
+        """Mixture logits (...) from the branch output, before centring."""
         if self.uniform_mixture:  # ablation of §3.1.6: no φ, uniform weights over present objects
             return jnp.zeros(h.shape[:-1], h.dtype)
-        return centre(self.mixture_logit(h)[..., 0])
+        return self.mixture_logit(h)[..., 0]
 
-    def __call__(self, x: Array) -> tuple[Array, Array]:
-        h = self.branch(x)
-        return self.rest(h), self.mixture_logits(h)
 
-    def sample_object(self, x: Array, present: Array, key: Array) -> tuple[Array, Array, Array]:
+def _dense_objects(mdl, objects: Array, state: Array) -> tuple[Array, ...]:
+    return mdl.per_object(objects, state)
+
+
+def _packed_objects(mdl, plan: sets.PresentRows, objects: Array, state: Array) -> tuple[Array, ...]:
+    packed = mdl.per_object(sets.pack(objects, plan), state, plan)
+    return tuple(sets.unpack(x, plan) for x in packed)
+
+
+def _dense_pick(mdl, objects: Array, state: Array, weighted: Array, present: Array, key: Array):
+    h = mdl.trunk.branch(objects, state)
+    logits = masked_logits(centre_over(mdl.trunk.raw_logits(h), weighted), present)
+    index = sample_slot(key, logits, present)
+    return _select_object(h, index), logits, index
+
+
+def _packed_pick(mdl, plan, objects: Array, state: Array, weighted: Array, present: Array, key: Array):
+    h = mdl.trunk.branch(sets.pack(objects, plan), state, plan)
+    raw = sets.unpack(mdl.trunk.raw_logits(h), plan)
+    logits = masked_logits(centre_over(raw, weighted), present)
+    index = sample_slot(key, logits, present)  # drawn over every slot: the same draw as dense
+    rows = jnp.take_along_axis(plan.row.reshape(present.shape), index[..., None], axis=-1)[..., 0]
+    chosen = jnp.concatenate([h, jnp.zeros((1, h.shape[-1]), h.dtype)])[rows]
+    return chosen, logits, index
+
+
+class _MixtureActor(nn.Module):
+    """What both mixture actors share: the object rows, the packing of their weighted rows, the
+    full path's per-object outputs and the fast path's object draw. Subclasses hold the fields
+    ``set_key``, ``neutral_object``, ``neutral_flag`` and ``packing``, a ``trunk`` and ``per_object``."""
+
+    def rows(self, obs: Observation) -> tuple[Array, Array, Array, Array]:
+        """Objects (..., O, F), state (..., S), the present mask and the slots carrying weight (the
+        present ones, or all of a set without any, §3.1.4): those the per-object layers must see."""
+        objects, state, present = object_rows(obs, self.set_key, self.neutral_object, self.neutral_flag)
+        return objects, state, present, present | ~jnp.any(present, axis=-1, keepdims=True)
+
+    def all_objects(self, obs: Observation) -> tuple[tuple[Array, ...], Array, Array]:
+        """``per_object`` outputs for every slot (zeros where no weight falls when packed), the
+        mixture logits centred over the weighted slots, and the present mask."""
+        objects, state, present, weighted = self.rows(obs)
+        plan = sets.plan_for(weighted, self.packing)
+        *heads, logits = sets.packed_or_dense(self, plan, _packed_objects, _dense_objects, objects, state)
+        return tuple(heads), centre_over(logits, weighted), present
+
+    def pick_object(self, obs: Observation, key: Array) -> tuple[Array, Array, Array]:
         """Fast path, first half: the branch for all objects, then an object drawn from the masked
         mixture logits. Returns (the chosen object's last hidden layer, those masked logits, the index)."""
-        h = self.branch(x)
-        logits = masked_logits(self.mixture_logits(h), present)
-        object_index = sample_slot(key, logits, present)
-        return self.rest(_select_object(h, object_index)), logits, object_index
+        objects, state, present, weighted = self.rows(obs)
+        plan = sets.plan_for(weighted, self.packing)
+        h, logits, index = sets.packed_or_dense(
+            self, plan, _packed_pick, _dense_pick, objects, state, weighted, present, key
+        )
+        return self.trunk.rest(h), logits, index
 
 
-class MixtureGaussianActor(nn.Module):
+class MixtureGaussianActor(_MixtureActor):
     """XSAC per-object actor (§2.3, §4.3): one squashed-Gaussian mixture component per object.
 
     For every slot o: μ, log σ ∈ R^{C×A} and a mixture logit from a linear φ on hidden layer
     ``weight_depth`` (φ_d ∈ 1..depth, default the last, as in every config). No feature extractor: the
     input is the fixed reshaper ``object_inputs``. ``log_std_min`` / ``log_std_max`` clip the fast
-    path's log σ (the full path's outputs are raw).
+    path's log σ (the full path's outputs are raw). With ``packing`` the per-object layers run on the
+    slots that carry weight only (:mod:`xrl_jax.sets`); the result is the same.
     """
 
     action_dim: int = 3
@@ -158,6 +216,7 @@ class MixtureGaussianActor(nn.Module):
     neutral_object: bool = False
     neutral_flag: bool = False
     uniform_mixture: bool = False
+    packing: sets.Packing | None = None
 
     def setup(self):
         if self.depth < 1 or self.components_per_object < 1 or self.action_dim < 1:
@@ -171,11 +230,14 @@ class MixtureGaussianActor(nn.Module):
         shape = (*h.shape[:-1], self.components_per_object, self.action_dim)
         return self.mean_head(h).reshape(shape), self.log_std_head(h).reshape(shape)
 
+    def per_object(self, objects: Array, state: Array, plan=None) -> tuple[Array, Array, Array]:
+        h = self.trunk.branch(objects, state, plan)
+        means, log_stds = self._heads(self.trunk.rest(h))
+        return means, log_stds, self.trunk.raw_logits(h)
+
     def __call__(self, obs: Observation) -> GaussianMixtureOutput:
         """Full path: every object's component parameters and mixture logit."""
-        inputs, present = object_inputs(obs, self.set_key, self.neutral_object, self.neutral_flag)
-        h, mixture_logits = self.trunk(inputs)
-        means, log_stds = self._heads(h)
+        (means, log_stds), mixture_logits, present = self.all_objects(obs)
         return GaussianMixtureOutput(means, log_stds, mixture_logits, present)
 
     def sample_fast(self, obs: Observation, key: Array) -> FastSample:
@@ -184,9 +246,8 @@ class MixtureGaussianActor(nn.Module):
         Layers 1..φ_d and φ run for all O objects (the logits need them); layers φ_d+1..depth and the
         μ / log σ heads run once per sample. Distributionally identical to full-mixture sampling.
         """
-        inputs, present = object_inputs(obs, self.set_key, self.neutral_object, self.neutral_flag)
         key_object, key_component, key_noise = jax.random.split(key, 3)
-        h, logits, object_index = self.trunk.sample_object(inputs, present, key_object)
+        h, logits, object_index = self.pick_object(obs, key_object)
         means, log_stds = self._heads(h)
         shape = object_index.shape
         component_index = jax.random.randint(key_component, shape, 0, self.components_per_object)
@@ -198,10 +259,10 @@ class MixtureGaussianActor(nn.Module):
         return FastSample(action, object_index, component_index, logits, (means, log_stds))
 
 
-class MixtureCategoricalActor(nn.Module):
+class MixtureCategoricalActor(_MixtureActor):
     """XDSAC per-object actor (§2.4, §4.3): per object N action logits (centred over actions) and a
     mixture logit. The reference always branches φ off the last hidden layer; ``weight_depth``
-    generalises this as for XSAC (paper Table I).
+    generalises this as for XSAC (paper Table I). ``packing`` as for :class:`MixtureGaussianActor`.
     """
 
     num_actions: int = 12
@@ -212,6 +273,7 @@ class MixtureCategoricalActor(nn.Module):
     neutral_object: bool = False
     neutral_flag: bool = False
     uniform_mixture: bool = False
+    packing: sets.Packing | None = None
 
     def setup(self):
         if self.depth < 1 or self.num_actions < 1:
@@ -220,16 +282,18 @@ class MixtureCategoricalActor(nn.Module):
         self.trunk = _MyopicTrunk(self.width, self.depth, weight_depth, self.uniform_mixture)
         self.logit_head = nn.Dense(self.num_actions, name="logits")
 
+    def per_object(self, objects: Array, state: Array, plan=None) -> tuple[Array, Array]:
+        h = self.trunk.branch(objects, state, plan)
+        return centre(self.logit_head(self.trunk.rest(h))), self.trunk.raw_logits(h)
+
     def __call__(self, obs: Observation) -> CategoricalMixtureOutput:
-        inputs, present = object_inputs(obs, self.set_key, self.neutral_object, self.neutral_flag)
-        h, mixture_logits = self.trunk(inputs)
-        return CategoricalMixtureOutput(centre(self.logit_head(h)), mixture_logits, present)
+        (logits,), mixture_logits, present = self.all_objects(obs)
+        return CategoricalMixtureOutput(logits, mixture_logits, present)
 
     def sample_fast(self, obs: Observation, key: Array) -> FastSample:
         """Ancestral sampling (paper eq. after (3)): object from the weights, action from its head only."""
-        inputs, present = object_inputs(obs, self.set_key, self.neutral_object, self.neutral_flag)
         key_object, key_action = jax.random.split(key)
-        h, logits, object_index = self.trunk.sample_object(inputs, present, key_object)
+        h, logits, object_index = self.pick_object(obs, key_object)
         action_logits = centre(self.logit_head(h))
         action = jax.random.categorical(key_action, action_logits, axis=-1).astype(jnp.int32)
         return FastSample(action, object_index, jnp.zeros_like(object_index), logits, action_logits)
@@ -289,4 +353,5 @@ __all__ = [
     "MixtureCategoricalActor",
     "MixtureGaussianActor",
     "centre",
+    "centre_over",
 ]

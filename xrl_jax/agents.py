@@ -57,7 +57,7 @@ from flax import struct
 from xrl_jax import losses
 from xrl_jax.config import AgentConfig
 from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture, squashed_gaussian
-from xrl_jax.networks import Networks, ObservationShape, find_set_key, make_networks
+from xrl_jax.networks import Networks, ObservationShape, find_set_key, make_networks, set_packing
 
 Array = jax.Array
 ACT_MODES = ("train", "eval", "deterministic")
@@ -355,7 +355,7 @@ class Agent:
             # §7.2.1: one reparameterised sample per component, each scored under the full mixture
             # (floored density), Q = min of the updated critics, weights keep their gradient.
             actions, log_probs = pi.sample_per_component(key, floor_density=True)
-            q = critic.apply(critic_params, obs, actions)  # F(s) once, heads on all K actions
+            q = critic.apply(critic_params, obs, actions, pi.weighted)  # F(s) once, heads per component
             return losses.xsac_actor_loss(pi.weights, log_probs, q, alpha, hp.kappa)
         q = critic.apply(critic_params, obs)
         loss, aux = losses.xdsac_actor_loss(pi.probs(), pi.weights, q, alpha, hp.kappa)
@@ -438,7 +438,22 @@ class Agent:
         metrics["grad_norm_critic"] = optax.tree.norm(critic_grads)
         metrics["grad_norm_actor"] = optax.tree.norm(actor_grads)
         metrics["ent_coef"] = jnp.exp(log_alpha)  # post-update α for every agent (§7.4)
+        packing = set_packing(self.config)
+        if packing is not None:
+            metrics["packed_overflow"] = self._packed_overflow(batch, packing)
         return new_state, metrics
+
+    def _packed_overflow(self, batch: Mapping[str, Any], packing) -> Array:
+        """1.0 when the batch's observations or next observations hold more present objects than the
+        Deep Sets' packed rows, so that their layers computed on every slot (xrl_jax.sets); else 0.
+        Averaged over a chunk's updates: how often ``packed_rows`` was too small."""
+        set_key = self.obs_shape.set_key
+
+        def overflows(obs):
+            present = jnp.asarray(obs[set_key])[..., 0] > 0
+            return jnp.sum(present) > packing.capacity(*present.shape)
+
+        return (overflows(batch["obs"]) | overflows(batch["next_obs"])).astype(jnp.result_type(float))
 
     # ---- input checks -----------------------------------------------------------------------
     def check_batch(self, batch: Mapping[str, Any]) -> None:
@@ -481,15 +496,21 @@ def _adam_step(tx: optax.GradientTransformation, grads, opt_state, params, lr: A
     return params, opt_state
 
 
-def make_agent(config: AgentConfig, obs_example: Mapping[str, Any], action_size: int) -> Agent:
+def make_agent(
+    config: AgentConfig, obs_example: Mapping[str, Any], action_size: int, packing_fallback: bool = True
+) -> Agent:
     """Build an agent for observations shaped like `obs_example` (one unbatched observation) and
-    `action_size` = A (continuous: SAC, XSAC) or N (discrete: DSAC, XDSAC)."""
+    `action_size` = A (continuous: SAC, XSAC) or N (discrete: DSAC, XDSAC).
+
+    With ``config.packed_rows`` its per-object layers compute on the present objects only
+    (:mod:`xrl_jax.sets`); to keep that a real branch under your own ``jax.vmap`` over agent states,
+    name the axis ``xrl_jax.sets.MEMBERS_AXIS``. ``packing_fallback=False`` only for counting FLOPs."""
     if not isinstance(config, AgentConfig):
         raise TypeError(f"config must be an AgentConfig, got {type(config).__name__}")
     if not isinstance(action_size, int) or action_size < 1:
         raise ValueError(f"action_size must be a positive integer, got {action_size!r}")
     obs_shape = observation_shape(obs_example)
-    networks = make_networks(config, obs_shape, action_size)
+    networks = make_networks(config, obs_shape, action_size, packing_fallback)
     return Agent(config=config, networks=networks, obs_shape=obs_shape, action_size=action_size)
 
 

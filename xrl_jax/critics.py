@@ -11,6 +11,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from xrl_jax import sets
 from xrl_jax.extractors import MLP, Observation
 
 Array = jax.Array
@@ -35,13 +36,14 @@ class FeatureActionDense(nn.Module):
 
     Same parameters as ``nn.Dense`` on the concatenation (kernel (F + A, width), bias). Splitting the
     matmul means evaluating K actions per state costs K·A·width instead of K·(F + A)·width multiplies
-    for the first layer: the feature part is never tiled.
+    for the first layer: the feature part is never tiled. With a ``plan`` (:mod:`xrl_jax.sets`) the
+    actions are packed rows (P, A) and each takes its own state's part.
     """
 
     features: int
 
     @nn.compact
-    def __call__(self, state_features: Array, action: Array) -> Array:
+    def __call__(self, state_features: Array, action: Array, plan: sets.PresentRows | None = None) -> Array:
         num_features = state_features.shape[-1]
         dtype = jnp.result_type(state_features, action)
         kernel = self.param(
@@ -52,6 +54,8 @@ class FeatureActionDense(nn.Module):
         ).astype(dtype)
         bias = self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32).astype(dtype)
         per_state = state_features @ kernel[:num_features] + bias
+        if plan is not None:
+            return sets.broadcast_to_rows(per_state, plan) + action @ kernel[num_features:]
         return broadcast_features(per_state, action) + action @ kernel[num_features:]
 
 
@@ -61,8 +65,8 @@ class ContinuousQHead(nn.Module):
     widths: Sequence[int]
 
     @nn.compact
-    def __call__(self, state_features: Array, action: Array) -> Array:
-        h = nn.relu(FeatureActionDense(self.widths[0], name="dense_0")(state_features, action))
+    def __call__(self, state_features: Array, action: Array, plan: sets.PresentRows | None = None) -> Array:
+        h = nn.relu(FeatureActionDense(self.widths[0], name="dense_0")(state_features, action, plan))
         for i, width in enumerate(self.widths[1:], start=1):
             h = nn.relu(nn.Dense(width, name=f"dense_{i}")(h))
         return nn.Dense(1, name="q")(h)[..., 0]
@@ -81,17 +85,29 @@ def critic_ensemble(head: type[nn.Module], n_critics: int) -> type[nn.Module]:
     )
 
 
+def _q_dense(mdl: ContinuousCritic, state_features: Array, action: Array) -> Array:
+    return mdl.heads(state_features, action)
+
+
+def _q_packed(mdl: ContinuousCritic, plan: sets.PresentRows, state_features: Array, action: Array) -> Array:
+    q = mdl.heads(state_features, sets.pack(action, plan), plan)  # (n_critics, P)
+    return jnp.moveaxis(sets.unpack(q.T, plan), -1, 0)
+
+
 class ContinuousCritic(nn.Module):
     """SAC / XSAC critic ensemble (§2.1, §4.5): one shared extractor F, ``n_critics`` heads.
 
     ``__call__(obs, action)`` → (n_critics, *action.shape[:-1]). ``action`` may carry extra axes after
-    the observation batch axes (e.g. (B, O, C, A) for all mixture components): F(s) is computed once and
-    only the head runs per action. ``features`` / ``q_from_features`` expose the two stages.
+    the observation batch axes (e.g. (B, K, A) for all mixture components): F(s) is computed once and
+    only the head runs per action. ``features`` / ``q_from_features`` expose the two stages. Given
+    ``present`` (B, K) for such component actions, the values of the others do not matter: with
+    ``packing`` the heads skip them (their values are 0), otherwise they are computed as any other.
     """
 
     extractor: nn.Module
     widths: Sequence[int] = (256, 256)
     n_critics: int = 2
+    packing: sets.Packing | None = None
 
     def setup(self):
         if not self.widths:
@@ -101,11 +117,19 @@ class ContinuousCritic(nn.Module):
     def features(self, obs: Observation) -> Array:
         return self.extractor(obs)
 
-    def q_from_features(self, state_features: Array, action: Array) -> Array:
-        return self.heads(state_features, action)
+    def q_from_features(self, state_features: Array, action: Array, present: Array | None = None) -> Array:
+        if present is None:
+            return self.heads(state_features, action)
+        if present.shape != action.shape[:-1] or present.ndim != state_features.ndim:
+            raise ValueError(
+                f"present {present.shape} must be the component actions' {action.shape[:-1]}, one axis "
+                f"after the features' batch axes {state_features.shape[:-1]}"
+            )
+        plan = sets.plan_for(present, self.packing)
+        return sets.packed_or_dense(self, plan, _q_packed, _q_dense, state_features, action)
 
-    def __call__(self, obs: Observation, action: Array) -> Array:
-        return self.q_from_features(self.features(obs), action)
+    def __call__(self, obs: Observation, action: Array, present: Array | None = None) -> Array:
+        return self.q_from_features(self.features(obs), action, present)
 
 
 class DiscreteQHead(nn.Module):

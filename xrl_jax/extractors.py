@@ -5,7 +5,8 @@ Conventions shared by every network module (``extractors``, ``actors``, ``critic
 * Observations are dicts ``{"state": (..., S), "<name>_set": (..., O, F_obj)}``; column 0 of the set is
   the present flag. Every module accepts arbitrary leading batch axes ``...`` (also none).
 * Absent object rows are masked with ``where`` (never boolean indexing), so shapes never depend on
-  data and absent rows may hold any finite values without changing any output.
+  data and absent rows may hold any finite values without changing any output. Per-object layers
+  given a :class:`~xrl_jax.sets.Packing` run on the present rows only, with the same result.
 * Ensembles of critics are stacked on a new **leading** axis: ``(n_critics, ...)``.
 * All layers use Flax defaults (LeCun-normal kernels, zero biases) except the Fourier layer (§4.4).
 """
@@ -17,6 +18,8 @@ from collections.abc import Mapping, Sequence
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+
+from xrl_jax import sets
 
 Array = jax.Array
 Observation = Mapping[str, Array]
@@ -65,18 +68,16 @@ def present_mask(objects: Array) -> Array:
     return objects[..., 0] > 0
 
 
-def object_inputs(
+def object_rows(
     obs: Observation, set_key: str | None = None, neutral_object: bool = False, neutral_flag: bool = False
-) -> tuple[Array, Array]:
-    """The X-actor observation reshaper (§4.1): per-object rows ``[x_o, z]`` and the present mask.
+) -> tuple[Array, Array, Array]:
+    """The X actors' objects, state and present mask (§4.1), before the state is joined to each object.
 
-    The object row keeps its present flag (and, for tracking, the index column); the state ``z`` is
-    broadcast to every slot. ``neutral_object`` prepends a neutral object (multi-agent only), whose
-    component therefore sees only the state. As in the original its row is all zero, present column
-    included, while the mask counts it as present (docs/algorithms.md §4.1);
-    ``neutral_flag`` writes 1 into that column instead.
+    ``neutral_object`` prepends a neutral object (multi-agent only), whose component therefore sees
+    only the state. As in the original its row is all zero, present column included, while the mask
+    counts it as present (docs/algorithms.md §4.1); ``neutral_flag`` writes 1 into that column instead.
 
-    Returns ``(inputs (..., O[+1], F_obj + S), present (..., O[+1]) bool)``.
+    Returns ``(objects (..., O[+1], F_obj), state (..., S), present (..., O[+1]) bool)``.
     """
     _, objects, state = split_observation(obs, set_key)
     dtype = jnp.result_type(objects, state)
@@ -86,6 +87,22 @@ def object_inputs(
         neutral = jnp.zeros((*objects.shape[:-2], 1, objects.shape[-1]), dtype)
         objects = jnp.concatenate([neutral.at[..., 0].set(float(neutral_flag)), objects], axis=-2)
         present = jnp.concatenate([jnp.ones((*present.shape[:-1], 1), bool), present], axis=-1)
+    return objects, state, present
+
+
+def object_inputs(
+    obs: Observation, set_key: str | None = None, neutral_object: bool = False, neutral_flag: bool = False
+) -> tuple[Array, Array]:
+    """The X-actor observation reshaper (§4.1): per-object rows ``[x_o, z]`` and the present mask.
+
+    The object row keeps its present flag (and, for tracking, the index column); the state ``z`` is
+    broadcast to every slot; the neutral object as in :func:`object_rows`. The actors never build
+    this array (their first layer splits into an object part and a state part computed once per
+    observation); it states what their input is.
+
+    Returns ``(inputs (..., O[+1], F_obj + S), present (..., O[+1]) bool)``.
+    """
+    objects, state, present = object_rows(obs, set_key, neutral_object, neutral_flag)
     tiled_state = jnp.broadcast_to(state[..., None, :], objects.shape[:-1] + state.shape[-1:])
     return jnp.concatenate([objects, tiled_state], axis=-1), present
 
@@ -167,32 +184,80 @@ class FourierFeatures(nn.Module):
         return jnp.sin(jnp.pi * projected)
 
 
+class ObjectStateDense(nn.Module):
+    """Dense layer on ``[x_o, z]`` (an object row joined to its observation's state).
+
+    Same parameters as ``nn.Dense`` on the joined row (kernel (F_obj + S, width), bias). For every slot
+    (``objects`` (..., O, F_obj)) the state half ``z·W_z + b`` is computed once per observation and
+    added to every slot's ``x_o·W_x``, so the joined rows are never built; for packed rows
+    (``objects`` (P, F_obj) with their ``plan``, :mod:`xrl_jax.sets`) each row is joined to its own
+    observation's state, a narrower copy than the state half would be.
+    """
+
+    features: int
+
+    @nn.compact
+    def __call__(self, objects: Array, state: Array, plan: sets.PresentRows | None = None) -> Array:
+        num_object_features = objects.shape[-1]
+        dtype = jnp.result_type(objects, state)
+        kernel = self.param(
+            "kernel",
+            nn.initializers.lecun_normal(),
+            (num_object_features + state.shape[-1], self.features),
+            jnp.float32,
+        ).astype(dtype)
+        bias = self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32).astype(dtype)
+        if plan is not None:
+            rows = jnp.concatenate([objects, sets.broadcast_to_rows(state, plan)], axis=-1)
+            return rows @ kernel + bias
+        per_state = state @ kernel[num_object_features:] + bias
+        return objects @ kernel[:num_object_features] + per_state[..., None, :]
+
+
+def _deep_set_items(mdl: DeepSet, items: Array) -> Array:
+    """The item encoder (its layers named ``item_i`` in ``mdl``'s scope), on rows (..., F_obj - 1)."""
+    if mdl.fourier_scale is None:
+        h = nn.relu(nn.Dense(mdl.width, name="item_0")(items))
+    else:
+        h = FourierFeatures(mdl.width, mdl.fourier_scale, name="item_0")(items)
+    for i in range(1, mdl.item_depth):
+        h = nn.relu(nn.Dense(mdl.width, name=f"item_{i}")(h))
+    return h
+
+
+def _deep_set_sum_dense(mdl: DeepSet, items: Array, present: Array) -> Array:
+    h = _deep_set_items(mdl, items)
+    return jnp.sum(jnp.where(present[..., None], h, 0.0), axis=-2)
+
+
+def _deep_set_sum_packed(mdl: DeepSet, plan: sets.PresentRows, items: Array, present: Array) -> Array:
+    return sets.sum_rows(_deep_set_items(mdl, sets.pack(items, plan)), plan)
+
+
 class DeepSet(nn.Module):
     """Deep Set with learned Fourier features (LFF-DS, §4.4) on a padded set (..., O, F_obj).
 
-    The present column (0) is dropped from the items; item encodings of absent slots are zeroed before
-    the sum, so the output is invariant to slot order and to the contents of absent rows.
-    ``fourier_scale=None`` replaces the Fourier layer by Dense + ReLU (``set_ffn: false``).
+    The present column (0) is dropped from the items; only present items enter the sum, so the output
+    is invariant to slot order and to the contents of absent rows. ``fourier_scale=None`` replaces the
+    Fourier layer by Dense + ReLU (``set_ffn: false``). With ``packing`` the item encoder runs on the
+    present rows only (:mod:`xrl_jax.sets`); the result is the same.
     """
 
     width: int = 128
     item_depth: int = 3
     set_depth: int = 2
     fourier_scale: float | None = 30.0
+    packing: sets.Packing | None = None
 
     @nn.compact
     def __call__(self, objects: Array) -> Array:
         if self.item_depth < 1:
             raise ValueError(f"item_depth must be >= 1, got {self.item_depth}")
         present = present_mask(objects)
-        items = objects[..., 1:]
-        if self.fourier_scale is None:
-            h = nn.relu(nn.Dense(self.width, name="item_0")(items))
-        else:
-            h = FourierFeatures(self.width, self.fourier_scale, name="item_0")(items)
-        for i in range(1, self.item_depth):
-            h = nn.relu(nn.Dense(self.width, name=f"item_{i}")(h))
-        pooled = jnp.sum(jnp.where(present[..., None], h, 0.0), axis=-2)
+        plan = sets.plan_for(present, self.packing)
+        pooled = sets.packed_or_dense(
+            self, plan, _deep_set_sum_packed, _deep_set_sum_dense, objects[..., 1:], present
+        )
         return MLP((self.width,) * self.set_depth, name="set_encoder")(pooled)
 
 
@@ -210,13 +275,14 @@ class DeepSetExtractor(nn.Module):
     set_depth: int = 2
     fourier_scale: float | None = 30.0
     state_width: int = 128
+    packing: sets.Packing | None = None
 
     @nn.compact
     def __call__(self, obs: Observation) -> Array:
         set_key, objects, state = split_observation(obs, None)
         parts = {
             set_key: DeepSet(
-                self.width, self.item_depth, self.set_depth, self.fourier_scale, name="deep_set"
+                self.width, self.item_depth, self.set_depth, self.fourier_scale, self.packing, name="deep_set"
             )(objects),
             STATE_KEY: nn.relu(nn.Dense(self.state_width, name="state_encoder")(state)),
         }
@@ -253,8 +319,10 @@ __all__ = [
     "DeepSetExtractor",
     "FlatPEExtractor",
     "FourierFeatures",
+    "ObjectStateDense",
     "find_set_key",
     "object_inputs",
+    "object_rows",
     "positional_encoding",
     "present_mask",
     "split_observation",

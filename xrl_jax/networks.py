@@ -56,6 +56,7 @@ from xrl_jax.extractors import (
     present_mask,
     tracking_index_feature,
 )
+from xrl_jax.sets import Packing
 
 Array = jax.Array
 
@@ -87,8 +88,17 @@ def dummy_observation(shape: ObservationShape, batch_shape: tuple[int, ...] = ()
     }
 
 
-def make_extractor(config: AgentConfig) -> nn.Module:
-    """The critic's (and the baseline actors') extractor named by ``config.feature_extractor``."""
+def set_packing(config: AgentConfig, fallback: bool = True) -> Packing | None:
+    """How the per-object layers pack the present objects (``packed_rows`` per set), or ``None``:
+    every slot (no ``packed_rows``, or ``dense_sets``). ``fallback`` as in :class:`~xrl_jax.sets.Packing`."""
+    if config.packed_rows is None or config.dense_sets:
+        return None
+    return Packing(float(config.packed_rows), fallback=fallback)
+
+
+def make_extractor(config: AgentConfig, packing: Packing | None = None) -> nn.Module:
+    """The critic's (and the baseline actors') extractor named by ``config.feature_extractor``, its
+    Deep Set packed by ``packing``."""
     if config.feature_extractor == "deepset":
         return DeepSetExtractor(
             width=config.fe_width,
@@ -96,6 +106,7 @@ def make_extractor(config: AgentConfig) -> nn.Module:
             set_depth=config.fe_set_depth,
             fourier_scale=config.fourier_scale,
             state_width=config.fe_width,
+            packing=packing,
         )
     return FlatPEExtractor(num_freqs=config.pe_freqs)
 
@@ -137,14 +148,24 @@ class Networks:
         return self.critic.init(key, self.dummy_observation(), self.dummy_action())
 
 
-def make_networks(config: AgentConfig, obs_shape: ObservationShape, action_size: int) -> Networks:
+def make_networks(
+    config: AgentConfig, obs_shape: ObservationShape, action_size: int, packing_fallback: bool = True
+) -> Networks:
     """Build the actor and critic of §4.6 (each with its own extractor where it has one).
 
     ``action_size`` is A (SAC, XSAC) or N (DSAC, XDSAC); the config is validated on construction.
+    ``packing_fallback=False`` only for counting FLOPs (:class:`~xrl_jax.sets.Packing`).
     """
     c = config
     critic_widths = (c.critic_width,) * c.critic_depth
     actor_widths = (c.actor_width,) * c.actor_depth
+    packing = set_packing(c, packing_fallback)
+    # The mixture actors' rows include the neutral object, always present; the XSAC critic scores
+    # C component actions per row.
+    mixture_packing = None if packing is None else packing.scaled(1.0, extra_rows=int(c.neutral_object))
+    component_packing = None
+    if mixture_packing is not None and c.algo == "xsac":
+        component_packing = mixture_packing.scaled(c.components_per_object)
     mixture = dict(
         width=c.actor_width,
         depth=c.actor_depth,
@@ -153,11 +174,12 @@ def make_networks(config: AgentConfig, obs_shape: ObservationShape, action_size:
         neutral_object=c.neutral_object,
         neutral_flag=c.neutral_flag,
         uniform_mixture=c.uniform_mixture,
+        packing=mixture_packing,
     )
     if c.algo == "sac":
-        actor = GaussianActor(make_extractor(c), action_size, actor_widths)
+        actor = GaussianActor(make_extractor(c, packing), action_size, actor_widths)
     elif c.algo == "dsac":
-        actor = CategoricalActor(make_extractor(c), action_size, actor_widths)
+        actor = CategoricalActor(make_extractor(c, packing), action_size, actor_widths)
     elif c.algo == "xsac":
         log_std = dict(log_std_min=c.resolved_log_std_min(), log_std_max=c.log_std_max)
         actor = MixtureGaussianActor(
@@ -166,9 +188,10 @@ def make_networks(config: AgentConfig, obs_shape: ObservationShape, action_size:
     else:
         actor = MixtureCategoricalActor(action_size, **mixture)
     if c.is_discrete:
-        critic = DiscreteCritic(make_extractor(c), action_size, critic_widths, c.n_critics, c.duelling)
+        extractor = make_extractor(c, packing)
+        critic = DiscreteCritic(extractor, action_size, critic_widths, c.n_critics, c.duelling)
     else:
-        critic = ContinuousCritic(make_extractor(c), critic_widths, c.n_critics)
+        critic = ContinuousCritic(make_extractor(c, packing), critic_widths, c.n_critics, component_packing)
     return Networks(c, obs_shape, action_size, actor, critic)
 
 
@@ -205,5 +228,6 @@ __all__ = [
     "object_inputs",
     "positional_encoding",
     "present_mask",
+    "set_packing",
     "tracking_index_feature",
 ]

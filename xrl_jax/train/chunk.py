@@ -53,6 +53,7 @@ from jax.sharding import PartitionSpec as P
 from xrl_jax.agents import Agent, AgentState, HyperParams, make_agent, make_hparams
 from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_add_packed, buffer_init, buffer_sample
 from xrl_jax.config import HOST_ONLY_FIELDS, TrainConfig
+from xrl_jax.sets import MEMBERS_AXIS
 from xrl_jax.train.episodes import (
     EARLY_TERMINATION_REWARD,
     EpisodeWindow,
@@ -523,7 +524,9 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None, devices: l
         """One device's block of members."""
         if fresh:
             state = state.replace(feed=refill_feeds(state.feed))
-        state, report = jax.vmap(chunk_one, in_axes=(0, None))(state, start_vector_step)
+        # Named, so that the members of a block share their packed-or-dense branches (xrl_jax.sets).
+        chunk_members = jax.vmap(chunk_one, in_axes=(0, None), axis_name=MEMBERS_AXIS)
+        state, report = chunk_members(state, start_vector_step)
         health = report.health
         unhealthy = jnp.sum((health.first_nonfinite_step >= 0) | ~health.agent_finite, dtype=jnp.int32)
         return state, report.replace(unhealthy_members=jax.lax.psum(unhealthy, MEMBER_AXIS))
@@ -543,7 +546,8 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None, devices: l
         shard_map(chunk_block, in_specs=(members, replicated), out_specs=(members, report_specs)),
         donate_argnums=0,
     )
-    evaluate = jax.jit(shard_map(jax.vmap(evaluate_seed), in_specs=members, out_specs=members))
+    evaluate_block = jax.vmap(evaluate_seed, axis_name=MEMBERS_AXIS)
+    evaluate = jax.jit(shard_map(evaluate_block, in_specs=members, out_specs=members))
     loss_names = tuple(f"train/{k}" for k in _update_metric_order(metric_shapes))
     return Trainer(
         cfg, env, params, eval_params, agent, mesh, init_members, chunk, evaluate, loss_names, init_block

@@ -1,0 +1,272 @@
+"""Per-object layers on the present objects only: packing the present rows of padded sets.
+
+Observations pad every set to a fixed number of slots and flag the real objects in column 0. Most
+slots are padding — about 70 % of Country Road's 100 cone slots and nine in ten of the
+Intersection's vehicle slots (docs/performance.md) — yet a per-object layer computes the same
+result whatever the padding holds. So the networks pack the present rows of a whole call (every set
+of the batch) into one array of a fixed capacity, run their per-object layers on it, and then either
+sum the rows back per set (Deep Set pooling) or unpack them into the padded layout with zeros in the
+absent slots (the mixture actors' outputs, the critic's values of the mixture components).
+
+Shapes never depend on data: the capacity is static, ``ceil(sets × rows_per_set)`` rounded up to a
+multiple of 8. A call whose present rows exceed it takes the dense result instead, so no object is
+ever dropped and the result is the dense one either way. The dense computation sits in a branch
+(``nn.cond``) that runs only when some call overflows. Under ``jax.vmap`` a data-dependent branch
+turns into a select that runs both sides; when the vmapped axis is named :data:`MEMBERS_AXIS` (the
+trainer names its members' axis so), the members of that axis skip the dense branch together unless
+one of them overflows, and each member still keeps its own result (packed, or dense if it overflowed).
+Under any other ``vmap`` the result is the same, only slower (both run): name the axis.
+
+The four moves between layouts come in adjoint pairs, each the other's gradient, all gathers:
+:func:`pack` / :func:`unpack` (padded ↔ packed rows) and :func:`broadcast_to_rows` / :func:`sum_rows`
+(one value per set ↔ every row of the set).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+Array = jax.Array
+
+MEMBERS_AXIS = "vmapped_members"
+"""Name of the ``vmap`` axis whose members decide together between packed and dense computation."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Packing:
+    """Static packing settings of one per-object layer (hashable: a Flax module attribute).
+
+    ``rows_per_set``: rows reserved per set, on average over the sets of one call; a call of S sets
+    with O slots each packs into ``min(S·O, ceil8(S · rows_per_set))`` rows.
+    ``members_axis``: the vmap axis name whose members share the decision (see the module doc).
+    ``fallback=False`` compiles the packed computation alone, without the dense branch: only for
+    counting its FLOPs (XLA's cost analysis counts the larger branch of a conditional); a call that
+    overflows then drops objects.
+    """
+
+    rows_per_set: float
+    members_axis: str = MEMBERS_AXIS
+    fallback: bool = True
+
+    def __post_init__(self):
+        if not (isinstance(self.rows_per_set, (int, float)) and math.isfinite(self.rows_per_set)):
+            raise ValueError(f"rows_per_set must be a finite number, got {self.rows_per_set!r}")
+        if self.rows_per_set <= 0:
+            raise ValueError(f"rows_per_set must be positive, got {self.rows_per_set}")
+
+    def capacity(self, num_sets: int, slots: int) -> int:
+        """Packed rows for ``num_sets`` sets of ``slots`` slots (never more than all slots)."""
+        reserved = 8 * math.ceil(num_sets * self.rows_per_set / 8)
+        return min(num_sets * slots, reserved)
+
+    def scaled(self, factor: float, extra_rows: float = 0.0) -> Packing:
+        """The packing of a derived set: ``(rows_per_set + extra_rows) · factor`` rows per set (e.g. an
+        always-present neutral object adds a row, C mixture components per object multiply them)."""
+        return dataclasses.replace(self, rows_per_set=(self.rows_per_set + extra_rows) * factor)
+
+
+@struct.dataclass
+class PresentRows:
+    """Where the present rows of S padded sets of O slots go in a packed array of P rows.
+
+    ``source`` (P,): the flat slot ``s·O + o`` of each packed row, ``S·O`` for unused rows;
+    ``row`` (S·O,): the packed row of each slot, ``P`` for absent slots;
+    ``set_index`` (P,): the set of each packed row, ``S`` for unused rows (ascending);
+    ``fits``: every present row of this call has a place;
+    ``all_fit``: every present row has a place in every member's call on the named vmap axis (if bound).
+    """
+
+    source: Array
+    row: Array
+    set_index: Array
+    fits: Array
+    all_fit: Array
+    batch_shape: tuple[int, ...] = struct.field(pytree_node=False)
+    slots: int = struct.field(pytree_node=False)
+
+    @property
+    def capacity(self) -> int:
+        return self.source.shape[0]
+
+    @property
+    def num_sets(self) -> int:
+        return math.prod(self.batch_shape)
+
+
+def _axis_bound(name: str) -> bool:
+    try:
+        jax.lax.axis_size(name)
+    except NameError:
+        return False
+    return True
+
+
+def find_present_rows(present: Array, capacity: int, members_axis: str | None = MEMBERS_AXIS) -> PresentRows:
+    """The packing plan of a present mask (..., O): present slots in slot order, set after set."""
+    present = jnp.asarray(present, bool)
+    batch_shape, slots = tuple(present.shape[:-1]), int(present.shape[-1])
+    flat = present.reshape(-1)
+    num_slots = flat.shape[0]
+    rank = jnp.cumsum(flat, dtype=jnp.int32) - 1  # packed row of a present slot
+    placed = flat & (rank < capacity)
+    target = jnp.where(placed, rank, capacity)  # everything else lands on a dropped extra row
+    source = (
+        jnp.full((capacity + 1,), num_slots, jnp.int32)
+        .at[target]
+        .set(jnp.arange(num_slots, dtype=jnp.int32), mode="drop")[:capacity]
+    )
+    row = jnp.where(flat, jnp.minimum(rank, capacity), capacity).astype(jnp.int32)
+    set_index = (source // slots).astype(jnp.int32)
+    fits = jnp.sum(flat, dtype=jnp.int32) <= capacity
+    all_fit = fits
+    if members_axis is not None and _axis_bound(members_axis):
+        all_fit = jax.lax.psum((~fits).astype(jnp.int32), members_axis) == 0
+    return PresentRows(source, row, set_index, fits, all_fit, batch_shape, slots)
+
+
+def _with_zero_row(x: Array) -> Array:
+    return jnp.concatenate([x, jnp.zeros((1, *x.shape[1:]), x.dtype)])
+
+
+def _flat_rows(x: Array, leading: int) -> Array:
+    return x.reshape((math.prod(x.shape[:leading]), *x.shape[leading:]))
+
+
+@jax.custom_vjp
+def _pack(rows: Array, plan: PresentRows) -> Array:
+    return _with_zero_row(rows)[plan.source]
+
+
+@jax.custom_vjp
+def _unpack(packed: Array, plan: PresentRows) -> Array:
+    return _with_zero_row(packed)[plan.row]
+
+
+def _zero_plan_cotangent(plan: PresentRows):
+    return jax.tree.map(lambda x: None, plan)
+
+
+_pack.defvjp(
+    lambda rows, plan: (_pack(rows, plan), plan),
+    lambda plan, g: (_unpack(g, plan), _zero_plan_cotangent(plan)),
+)
+_unpack.defvjp(
+    lambda packed, plan: (_unpack(packed, plan), plan),
+    lambda plan, g: (_pack(g, plan), _zero_plan_cotangent(plan)),
+)
+
+
+def pack(rows: Array, plan: PresentRows) -> Array:
+    """Padded rows (..., O, *D) → the present ones packed, (P, *D); unused packed rows are zero."""
+    expected = (*plan.batch_shape, plan.slots)
+    if tuple(rows.shape[: len(expected)]) != expected:
+        raise ValueError(f"rows {rows.shape} must start with the plan's set shape {expected}")
+    return _pack(_flat_rows(rows, len(expected)), plan)
+
+
+def unpack(packed: Array, plan: PresentRows) -> Array:
+    """Packed rows (P, *D) → the padded layout (..., O, *D), absent slots exactly zero."""
+    if packed.shape[0] != plan.capacity:
+        raise ValueError(f"packed rows {packed.shape} must have the plan's {plan.capacity} rows")
+    flat = _unpack(packed, plan)
+    return flat.reshape((*plan.batch_shape, plan.slots, *packed.shape[1:]))
+
+
+@jax.custom_vjp
+def _broadcast(per_set: Array, plan: PresentRows) -> Array:
+    return _with_zero_row(per_set)[plan.set_index]
+
+
+@jax.custom_vjp
+def _sum(packed: Array, plan: PresentRows) -> Array:
+    return jax.ops.segment_sum(packed, plan.set_index, plan.num_sets, indices_are_sorted=True)
+
+
+_broadcast.defvjp(
+    lambda per_set, plan: (_broadcast(per_set, plan), plan),
+    lambda plan, g: (_sum(g, plan), _zero_plan_cotangent(plan)),
+)
+_sum.defvjp(
+    lambda packed, plan: (_sum(packed, plan), plan),
+    lambda plan, g: (_broadcast(g, plan), _zero_plan_cotangent(plan)),
+)
+
+
+def broadcast_to_rows(per_set: Array, plan: PresentRows) -> Array:
+    """One value per set (..., *D) → that value on each of the set's packed rows, (P, *D)."""
+    if tuple(per_set.shape[: len(plan.batch_shape)]) != plan.batch_shape:
+        raise ValueError(f"per-set values {per_set.shape} must start with the sets' shape {plan.batch_shape}")
+    return _broadcast(_flat_rows(per_set, len(plan.batch_shape)), plan)
+
+
+def sum_rows(packed: Array, plan: PresentRows) -> Array:
+    """Packed rows (P, *D) → their sum per set (..., *D); unused rows (set index S) are dropped."""
+    if packed.shape[0] != plan.capacity:
+        raise ValueError(f"packed rows {packed.shape} must have the plan's {plan.capacity} rows")
+    return _sum(packed, plan).reshape((*plan.batch_shape, *packed.shape[1:]))
+
+
+def plan_for(present: Array, packing: Packing | None) -> PresentRows | None:
+    """The packing plan of a present mask (..., O), or ``None`` when the layer computes densely: no
+    packing set, or a capacity that would hold every slot anyway."""
+    if packing is None:
+        return None
+    num_sets, slots = math.prod(present.shape[:-1]), present.shape[-1]
+    capacity = packing.capacity(num_sets, slots)
+    if capacity >= num_sets * slots:
+        return None
+    plan = find_present_rows(present, capacity, packing.members_axis)
+    return plan if packing.fallback else plan.replace(fits=None, all_fit=None)
+
+
+def packed_or_dense(
+    module: nn.Module,
+    plan: PresentRows | None,
+    packed: Callable[..., Any],
+    dense: Callable[..., Any],
+    *operands: Any,
+) -> Any:
+    """``packed(module, plan, *operands)`` where the plan fits, else ``dense(module, *operands)``.
+
+    Both must return the same result up to float rounding; ``dense`` alone runs without a plan, and
+    at initialisation, so that parameters start from the same draws with packing or without. The
+    packed computation always runs; the dense one only when some member's call overflows (a real
+    branch when the members' axis is named), and each member keeps its own choice, so that what a
+    member computes never depends on which members share its device.
+    """
+    if plan is None or module.is_initializing():
+        return dense(module, *operands)
+    result = packed(module, plan, *operands)
+    if plan.fits is None:  # Packing(fallback=False): the packed computation alone
+        return result
+    fallback = nn.cond(
+        plan.all_fit,
+        lambda mdl, result, *ops: result,
+        lambda mdl, result, *ops: dense(mdl, *ops),
+        module,
+        result,
+        *operands,
+    )
+    return jax.tree.map(lambda p, d: jnp.where(plan.fits, p, d), result, fallback)
+
+
+__all__ = [
+    "MEMBERS_AXIS",
+    "Packing",
+    "PresentRows",
+    "broadcast_to_rows",
+    "find_present_rows",
+    "pack",
+    "packed_or_dense",
+    "plan_for",
+    "sum_rows",
+    "unpack",
+]
