@@ -113,9 +113,14 @@ def find_present_rows(present: Array, capacity: int, members_axis: str | None = 
     """The packing plan of a present mask (..., O): present slots in slot order, set after set."""
     present = jnp.asarray(present, bool)
     batch_shape, slots = tuple(present.shape[:-1]), int(present.shape[-1])
-    flat = present.reshape(-1)
+    per_set = present.reshape(-1, slots)
+    flat = per_set.reshape(-1)
     num_slots = flat.shape[0]
-    rank = jnp.cumsum(flat, dtype=jnp.int32) - 1  # packed row of a present slot
+    # The packed row of a present slot: the objects of the sets before it, then its rank in its set
+    # (two short prefix sums rather than one over every slot of the call).
+    counts = jnp.sum(per_set, axis=-1, dtype=jnp.int32)
+    before = jnp.cumsum(counts) - counts
+    rank = (before[:, None] + jnp.cumsum(per_set, axis=-1, dtype=jnp.int32) - 1).reshape(-1)
     placed = flat & (rank < capacity)
     target = jnp.where(placed, rank, capacity)  # everything else lands on a dropped extra row
     source = (
