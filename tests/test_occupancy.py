@@ -54,12 +54,14 @@ def test_overflow_probability_counts_what_it_says():
 def test_update_cost_counts_the_packed_update_and_its_fallback():
     shape = ENV_OBSERVATIONS["country_road"]
     for algo in ("xdsac", "sac"):
-        agent = make_agent(preset("smoke", "country_road", algo), dummy_observation(shape), 12 if algo == "xdsac" else 3)
+        size = 12 if algo == "xdsac" else 3
+        agent = make_agent(preset("smoke", "country_road", algo), dummy_observation(shape), size)
         cost = occupancy.update_cost(agent, 16)
         assert cost["packed"] < 0.6 * cost["dense"]  # 576 of 1,600 slot rows per batch
         assert 0 < cost["fallback_probability"] < 1e-3
         assert cost["packed"] < cost["expected"] < cost["dense"]
-    tracking = make_agent(preset("smoke", "tracking", "xsac"), dummy_observation(ENV_OBSERVATIONS["tracking"]), 3)
+    tracking_example = dummy_observation(ENV_OBSERVATIONS["tracking"])
+    tracking = make_agent(preset("smoke", "tracking", "xsac"), tracking_example, 3)
     cost = occupancy.update_cost(tracking, 16)
     assert cost["packed"] is None and cost["expected"] == cost["dense"]
 
