@@ -57,8 +57,11 @@ def test_update_cost_counts_the_packed_update_and_its_fallback():
         size = 12 if algo == "xdsac" else 3
         agent = make_agent(preset("smoke", "country_road", algo), dummy_observation(shape), size)
         cost = occupancy.update_cost(agent, 16)
-        assert cost["packed"] < 0.6 * cost["dense"]  # 576 of 1,600 slot rows per batch
-        assert 0 < cost["fallback_probability"] < 1e-3
+        assert cost["packed"] < 0.6 * cost["dense"]  # 512 of 1,600 slot rows per batch
+        # A batch of 16 sets averages 462 cones, sd 22 (docs/set_occupancy.json): 512 rows are 2.3 sd
+        # above it, so a few per cent of updates fall back; the training batch of 128 almost never does.
+        assert 0.001 < cost["fallback_probability"] < 0.1
+        assert 0 < occupancy.fallback_probability(agent, 128) < 1e-6
         assert cost["packed"] < cost["expected"] < cost["dense"]
     tracking_example = dummy_observation(ENV_OBSERVATIONS["tracking"])
     tracking = make_agent(preset("smoke", "tracking", "xsac"), tracking_example, 3)

@@ -133,7 +133,6 @@ def test_the_estimate_scales_the_first_updating_chunk_and_warns_beyond_a_day():
     assert clock.chunk_s is None
 
 
-
 def test_sizes_read_at_any_scale():
     assert [resources.format_bytes(n) for n in (512, 40_000, 1.234e7, 4.56e9, 1.2e12)] == [
         "512 B", "40 kB", "12.3 MB", "4.56 GB", "1200 GB",

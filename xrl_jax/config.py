@@ -527,9 +527,9 @@ def parse_sweep(items: list[str] | tuple[str, ...]) -> tuple:
 INTERSECTION_ALPHA = 0.015  # fixed entropy coefficient of all four intersection agents (§8.7 there)
 # Rows reserved per set for the present objects (xrl_jax.sets), from docs/set_occupancy.json: Country
 # Road's sets hold 28.9 cones on average (p99 47 of 100 slots), the Intersection's 0.48 other
-# vehicles (p99 3 of 8). A batch of 128 sets averages so many that these capacities leave > 10
-# standard deviations of its mean spare; docs/performance.md shows the choice.
-COUNTRY_ROAD_PACKED_ROWS = 36.0
+# vehicles (p99 3 of 8). A batch of 128 sets holds so many that these capacities leave over 6
+# standard deviations of its total spare; docs/performance.md shows the choice.
+COUNTRY_ROAD_PACKED_ROWS = 32.0
 INTERSECTION_PACKED_ROWS = 1.0
 
 # The quick preset's optimisation constants on the racing scenarios, chosen for a budget of tens of

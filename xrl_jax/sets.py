@@ -252,12 +252,12 @@ def packed_or_dense(
     result = packed(module, plan, *operands)
     if plan.fits is None:  # Packing(fallback=False): the packed computation alone
         return result
+    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), result)
     fallback = nn.cond(
         plan.all_fit,
-        lambda mdl, result, *ops: result,
-        lambda mdl, result, *ops: dense(mdl, *ops),
+        lambda mdl, *ops: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes),
+        dense,
         module,
-        result,
         *operands,
     )
     return jax.tree.map(lambda p, d: jnp.where(plan.fits, p, d), result, fallback)

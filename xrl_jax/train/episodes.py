@@ -21,7 +21,6 @@ class EpisodeWindow:
     count: jax.Array  # episodes finished so far
 
 
-
 def window_init(dtype) -> EpisodeWindow:
     zeros = jnp.zeros((EPISODE_WINDOW,), dtype)
     return EpisodeWindow(zeros, zeros, jnp.zeros((EPISODE_WINDOW,), bool), zeros, jnp.zeros((), jnp.int32))
