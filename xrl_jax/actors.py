@@ -19,7 +19,7 @@ from flax import struct
 
 from xrl_jax import sets
 from xrl_jax.distributions import LOG_STD_MAX, MIXTURE_LOG_STD_MIN, clip_log_std, masked_logits, sample_slot
-from xrl_jax.extractors import MLP, CentredDense, ObjectStateDense, Observation, object_rows
+from xrl_jax.extractors import MLP, ObjectStateDense, Observation, object_rows
 
 Array = jax.Array
 
@@ -280,11 +280,11 @@ class MixtureCategoricalActor(_MixtureActor):
             raise ValueError("depth and num_actions must be >= 1")
         weight_depth = _resolve_weight_depth(self.weight_depth, self.depth)
         self.trunk = _MyopicTrunk(self.width, self.depth, weight_depth, self.uniform_mixture)
-        self.logit_head = CentredDense(self.num_actions, name="logits")
+        self.logit_head = nn.Dense(self.num_actions, name="logits")
 
     def per_object(self, objects: Array, state: Array, plan=None) -> tuple[Array, Array]:
         h = self.trunk.branch(objects, state, plan)
-        return self.logit_head(self.trunk.rest(h)), self.trunk.raw_logits(h)
+        return centre(self.logit_head(self.trunk.rest(h))), self.trunk.raw_logits(h)
 
     def __call__(self, obs: Observation) -> CategoricalMixtureOutput:
         (logits,), mixture_logits, present = self.all_objects(obs)
@@ -294,7 +294,7 @@ class MixtureCategoricalActor(_MixtureActor):
         """Ancestral sampling (paper eq. after (3)): object from the weights, action from its head only."""
         key_object, key_action = jax.random.split(key)
         h, logits, object_index = self.pick_object(obs, key_object)
-        action_logits = self.logit_head(h)
+        action_logits = centre(self.logit_head(h))
         action = jax.random.categorical(key_action, action_logits, axis=-1).astype(jnp.int32)
         return FastSample(action, object_index, jnp.zeros_like(object_index), logits, action_logits)
 
@@ -339,8 +339,8 @@ class CategoricalActor(nn.Module):
 
     @nn.compact
     def __call__(self, obs: Observation) -> Array:
-        features = MLP(self.widths, name="mlp")(self.extractor(obs))
-        return CentredDense(self.num_actions, name="logits")(features)
+        logits = nn.Dense(self.num_actions, name="logits")(MLP(self.widths, name="mlp")(self.extractor(obs)))
+        return centre(logits)
 
 
 __all__ = [

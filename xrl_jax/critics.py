@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from xrl_jax import sets
-from xrl_jax.extractors import MLP, DenseParams, Observation, centred_columns
+from xrl_jax.extractors import MLP, Observation
 
 Array = jax.Array
 
@@ -144,12 +144,9 @@ class DiscreteQHead(nn.Module):
         h = MLP(self.widths, name="mlp")(state_features)
         if not self.duelling:
             return nn.Dense(self.num_actions, name="q")(h)
-        # V + A − mean_a A as one layer: the advantage weights centred, the value's added to every action.
-        dtype = jnp.result_type(h, jnp.float32)
-        advantage = DenseParams(self.num_actions, name="advantage")(h.shape[-1], dtype)
-        value = DenseParams(1, name="value")(h.shape[-1], dtype)
-        kernel, bias = centred_columns(*advantage)
-        return h @ (kernel + value[0]) + (bias + value[1])
+        advantage = nn.Dense(self.num_actions, name="advantage")(h)
+        value = nn.Dense(1, name="value")(h)
+        return value + advantage - jnp.mean(advantage, axis=-1, keepdims=True)
 
 
 class DiscreteCritic(nn.Module):

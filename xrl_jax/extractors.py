@@ -153,42 +153,6 @@ class MLP(nn.Module):
         return x
 
 
-class DenseParams(nn.Module):
-    """The kernel (fan_in, features) and bias of an ``nn.Dense``, same names, shapes and initial values,
-    for layers that combine them before use (:class:`CentredDense`, the duelling head)."""
-
-    features: int
-
-    @nn.compact
-    def __call__(self, fan_in: int, dtype) -> tuple[Array, Array]:
-        kernel = self.param("kernel", nn.initializers.lecun_normal(), (fan_in, self.features), jnp.float32)
-        bias = self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32)
-        return kernel.astype(dtype), bias.astype(dtype)
-
-
-def centred_columns(kernel: Array, bias: Array) -> tuple[Array, Array]:
-    """A layer's kernel and bias whose outputs come out centred over the features: x·W + b minus its
-    mean over the last axis equals x·(W − mean_cols W) + (b − mean b). Centring the (small) weights
-    instead of every output row spares a reduction per row (docs/performance.md)."""
-    return kernel - jnp.mean(kernel, axis=-1, keepdims=True), bias - jnp.mean(bias)
-
-
-class CentredDense(nn.Module):
-    """``nn.Dense`` followed by subtracting the mean over its outputs (the categorical heads' logits,
-    §2.2), computed with centred weights (:func:`centred_columns`); parameters as ``nn.Dense``'s."""
-
-    features: int
-
-    @nn.compact
-    def __call__(self, x: Array) -> Array:
-        dtype = jnp.result_type(x, jnp.float32)
-        fan_in = x.shape[-1]
-        kernel = self.param("kernel", nn.initializers.lecun_normal(), (fan_in, self.features), jnp.float32)
-        bias = self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32)
-        kernel, bias = centred_columns(kernel.astype(dtype), bias.astype(dtype))
-        return x @ kernel + bias
-
-
 def fourier_kernel_init(scale: float):
     """W ~ N(0, (scale / d_in)²), plain (not truncated) normal (§4.4, §7.2.11)."""
 
@@ -351,14 +315,11 @@ class FlatPEExtractor(nn.Module):
 __all__ = [
     "MLP",
     "STATE_KEY",
-    "CentredDense",
     "DeepSet",
     "DeepSetExtractor",
-    "DenseParams",
     "FlatPEExtractor",
     "FourierFeatures",
     "ObjectStateDense",
-    "centred_columns",
     "find_set_key",
     "object_inputs",
     "object_rows",
