@@ -309,3 +309,70 @@ def test_capacity_rule_and_bad_settings():
     for bad in (0.0, -1.0, float("nan"), "8"):
         with pytest.raises(ValueError, match="rows_per_set"):
             sets.Packing(bad)
+
+
+def test_first_present_compacts_each_set_in_slot_order():
+    present = jnp.asarray([[0, 1, 0, 1, 1], [0, 0, 0, 0, 0], [1, 0, 0, 0, 0]], bool)
+    plan = sets.first_present(present, 3)
+    np.testing.assert_array_equal(plan.order[0], [1, 3, 4])
+    np.testing.assert_array_equal(plan.valid, [[1, 1, 1], [0, 0, 0], [1, 0, 0]])
+    np.testing.assert_array_equal(plan.order[2, :1], [0])
+    np.testing.assert_array_equal(jnp.where(present, plan.place, -1)[0], [-1, 0, -1, 1, 2])
+    assert bool(plan.fits) and not bool(sets.first_present(present, 2).fits)
+    assert sets.Packing(32.0).set_width(100) == 64 and sets.Packing(2.0).set_width(9) == 8
+    assert sets.per_set_plan(present, sets.Packing(4.0)) is None  # 8 ≥ 5 slots: nothing to compact
+
+
+def test_the_mixture_density_on_weighted_components_is_the_full_one():
+    """XSAC's eq. 9 densities formed among each sample's weighted components only (a per-set
+    compaction) equal those over all K components at the weighted slots, gradients included; a
+    sample with more weighted components than the width falls back to all K; under vmap on the
+    members' axis the fallback is a real branch."""
+    from xrl_jax.distributions import SquashedGaussianMixture
+
+    rng = np.random.default_rng(5)
+    slots, width = 20, 8
+    counts = [3, 0, 8, 1]  # an empty set: all 20 slots carry weight, more than 8
+    present = jnp.asarray(np.arange(slots)[None] < np.asarray(counts)[:, None])
+    present = present.at[0].set(jnp.asarray(rng.permutation(np.asarray(present[0]))))
+    packing = sets.Packing(width / 2)
+    with jax.enable_x64(True):
+        loc = jnp.asarray(rng.normal(size=(4, slots, 2)))
+        log_scale = jnp.asarray(rng.uniform(-1.5, 0.0, (4, slots, 2)))
+        logits = jnp.asarray(rng.normal(size=(4, slots)))
+
+        def loss(params, rows, packing):
+            mixture = SquashedGaussianMixture.create(
+                params[0][rows], params[1][rows], params[2][rows], present[rows]
+            )
+            _, log_probs = mixture.sample_per_component(jax.random.PRNGKey(0), packing=packing)
+            return jnp.sum(mixture.weights * log_probs), jnp.where(mixture.weighted, log_probs, 0.0)
+
+        params = (loc, log_scale, logits)
+        for rows, compacts in ((np.array([0, 2, 3]), True), (np.arange(4), False)):
+            weighted = present[rows] | ~jnp.any(present[rows], axis=-1, keepdims=True)  # §3.1.4
+            assert bool(sets.first_present(weighted, width).fits) == compacts
+            got = jax.value_and_grad(loss, has_aux=True)(params, rows, packing)
+            want = jax.value_and_grad(loss, has_aux=True)(params, rows, None)
+            assert_same(got, want, f"compacts={compacts}")
+        members = jax.vmap(lambda p: loss(p, np.array([0, 2, 3]), packing)[0], axis_name=sets.MEMBERS_AXIS)
+        stacked = jax.tree.map(lambda x: jnp.stack([x, x]), params)
+        assert "stablehlo.case" in jax.jit(members).lower(stacked).as_text()
+
+
+def test_xsac_losses_with_compacted_mixture_pairs_equal_the_dense_ones():
+    """The agent-level twin of the test above, on Country Road sets that all fit the pair width (the
+    every-agent test's empty and full sets make XSAC's pairs fall back to all slots)."""
+    rng = np.random.default_rng(9)
+    with jax.enable_x64(True):
+        packed, dense = agent_pair("country_road", "xsac", 30.0)
+        batch = transition_batch("country_road", "xsac", rng)
+        batch["obs"] = set_batch("country_road", rng.integers(1, 40, 10), rng, scatter_last=True)
+        weighted = batch["obs"]["cones_set"][..., 0] > 0
+        plan = sets.per_set_plan(weighted, packed.networks.component_packing)
+        assert plan is not None and bool(plan.fits)
+        state = float64_state(dense, jax.random.PRNGKey(1))
+        key = jax.random.PRNGKey(2)
+        got = jax.jit(lambda s, b, k: everything(packed, s, b, k))(state, batch, key)
+        want = jax.jit(lambda s, b, k: everything(dense, s, b, k))(state, batch, key)
+    assert_same(got, want, "xsac, compacted pairs")

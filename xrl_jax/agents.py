@@ -354,7 +354,9 @@ class Agent:
         if self.algo == "xsac":
             # §7.2.1: one reparameterised sample per component, each scored under the full mixture
             # (floored density), Q = min of the updated critics, weights keep their gradient.
-            actions, log_probs = pi.sample_per_component(key, floor_density=True)
+            actions, log_probs = pi.sample_per_component(
+                key, floor_density=True, packing=self.networks.component_packing
+            )
             q = critic.apply(critic_params, obs, actions, pi.weighted)  # F(s) once, heads per component
             return losses.xsac_actor_loss(pi.weights, log_probs, q, alpha, hp.kappa)
         q = critic.apply(critic_params, obs)

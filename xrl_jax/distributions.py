@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from xrl_jax import sets
 from xrl_jax.config import LOG_STD_MAX, MIXTURE_LOG_STD_MIN, SAC_LOG_STD_MIN  # the log-σ bounds' home
 
 if TYPE_CHECKING:
@@ -229,6 +230,21 @@ def _pairwise_backward(residuals, cotangent):
 
 
 _pairwise_log_density.defvjp(_pairwise_forward, _pairwise_backward)
+
+
+def _pairwise_among_weighted(
+    plan: sets.FirstPresent, u: Array, loc: Array, log_scale: Array, log_weights: Array
+) -> Array:
+    """:func:`_pairwise_log_density` on each sample's first weighted components (``plan``), in the K
+    slots again. The slots kept past a sample's count carry no weight (log weight ``ABSENT_LOG_WEIGHT``),
+    so they add exactly nothing, as in the full sum."""
+
+    def take(x):
+        return jnp.take_along_axis(x, plan.order[..., None], axis=-2)
+
+    kept_log_weights = jnp.take_along_axis(log_weights, plan.order, axis=-1)
+    compact = _pairwise_log_density(take(u), take(loc), take(log_scale), kept_log_weights)
+    return jnp.take_along_axis(compact, plan.place, axis=-1)
 
 
 def _mixture_log_prob(
@@ -452,18 +468,29 @@ class SquashedGaussianMixture(_Mixture):
         log_prob = _mixture_log_prob(u, action, self.loc, self.log_scale, self.log_weights, floor_density)
         return action, log_prob
 
-    def sample_per_component(self, key: Array, floor_density: bool = True) -> tuple[Array, Array]:
+    def sample_per_component(
+        self, key: Array, floor_density: bool = True, packing: sets.Packing | None = None
+    ) -> tuple[Array, Array]:
         """One reparameterised sample per component and its full-mixture log density (eq. 8-9, §3.4).
 
         Returns actions (..., K, A) with a_k = tanh(μ_k + σ_k ⊙ ε_k), and log π(a_k|s) (..., K)
         under the **full** mixture (K × K pairs), differentiable w.r.t. μ, log σ and the mixture
         logits. ``floor_density=True`` (default) is the actor-loss variant.
         Combine as Σ_k w_k·(α·log π(a_k|s) - Q(s, a_k)): the exact expectation over k.
+
+        With ``packing`` (:mod:`xrl_jax.sets`) the pairs are formed among the components that carry
+        weight only, up to ``packing.set_width(K)`` of them per sample (all K where some sample has
+        more): the others add exactly nothing to a density, and their own samples' log densities,
+        which no loss weighs, come out as 0.
         """
         noise = jax.random.normal(key, self.loc.shape, self.loc.dtype)
         u = self.loc + jnp.exp(self.log_scale) * noise
         actions = jnp.tanh(u)
-        log_density = _pairwise_log_density(u, self.loc, self.log_scale, self.log_weights)
+        plan = sets.per_set_plan(self.weighted, packing)
+        mixture = (u, self.loc, self.log_scale, self.log_weights)
+        log_density = sets.compact_or_dense(plan, _pairwise_among_weighted, _pairwise_log_density, *mixture)
+        if plan is not None:
+            log_density = jnp.where(self.weighted, log_density, 0.0)
         if floor_density:
             log_density = jnp.maximum(log_density, math.log(PROB_FLOOR))
         log_probs = log_density - tanh_log_det(actions)

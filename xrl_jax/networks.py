@@ -123,6 +123,7 @@ class Networks:
     action_size: int
     actor: nn.Module
     critic: nn.Module
+    component_packing: Packing | None = None  # XSAC: its K component actions (critic heads, eq. 9 pairs)
 
     @property
     def num_mixture_objects(self) -> int:
@@ -192,7 +193,7 @@ def make_networks(
         critic = DiscreteCritic(extractor, action_size, critic_widths, c.n_critics, c.duelling)
     else:
         critic = ContinuousCritic(make_extractor(c, packing), critic_widths, c.n_critics, component_packing)
-    return Networks(c, obs_shape, action_size, actor, critic)
+    return Networks(c, obs_shape, action_size, actor, critic, component_packing)
 
 
 __all__ = [

@@ -67,6 +67,12 @@ class Packing:
         reserved = 8 * math.ceil(num_sets * self.rows_per_set / 8)
         return min(num_sets * slots, reserved)
 
+    def set_width(self, slots: int) -> int:
+        """Slots kept per set by a per-set compaction (:func:`first_present`): twice the rows reserved
+        per set, rounded up to a multiple of 8, never more than all ``slots``. A single set is far more
+        variable than a batch's total, hence the margin."""
+        return min(slots, 8 * math.ceil(2 * self.rows_per_set / 8))
+
     def scaled(self, factor: float, extra_rows: float = 0.0) -> Packing:
         """The packing of a derived set: ``(rows_per_set + extra_rows) · factor`` rows per set (e.g. an
         always-present neutral object adds a row, C mixture components per object multiply them)."""
@@ -131,10 +137,24 @@ def find_present_rows(present: Array, capacity: int, members_axis: str | None = 
     row = jnp.where(flat, jnp.minimum(rank, capacity), capacity).astype(jnp.int32)
     set_index = (source // slots).astype(jnp.int32)
     fits = jnp.sum(flat, dtype=jnp.int32) <= capacity
-    all_fit = fits
+    return PresentRows(source, row, set_index, fits, _every_member(fits, members_axis), batch_shape, slots)
+
+
+def _every_member(fits: Array, members_axis: str | None) -> Array:
+    """``fits`` of every member on the named vmap axis (if bound), else this call's own."""
     if members_axis is not None and _axis_bound(members_axis):
-        all_fit = jax.lax.psum((~fits).astype(jnp.int32), members_axis) == 0
-    return PresentRows(source, row, set_index, fits, all_fit, batch_shape, slots)
+        return jax.lax.psum((~fits).astype(jnp.int32), members_axis) == 0
+    return fits
+
+
+def _own_choice(fits: Array, result: Any, fallback: Any) -> Any:
+    """Each member keeps its own result where it fits, the fallback's where it does not."""
+    return jax.tree.map(lambda p, d: jnp.where(fits, p, d), result, fallback)
+
+
+def _zeros_like_tree(tree: Any) -> Callable[..., Any]:
+    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), tree)
+    return lambda *_: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
 
 
 def _with_zero_row(x: Array) -> Array:
@@ -252,25 +272,75 @@ def packed_or_dense(
     result = packed(module, plan, *operands)
     if plan.fits is None:  # Packing(fallback=False): the packed computation alone
         return result
-    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), result)
-    fallback = nn.cond(
-        plan.all_fit,
-        lambda mdl, *ops: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes),
-        dense,
-        module,
-        *operands,
-    )
-    return jax.tree.map(lambda p, d: jnp.where(plan.fits, p, d), result, fallback)
+    fallback = nn.cond(plan.all_fit, _zeros_like_tree(result), dense, module, *operands)
+    return _own_choice(plan.fits, result, fallback)
+
+
+@struct.dataclass
+class FirstPresent:
+    """The first W present slots of every set of (..., O) slots, in slot order: for work that pairs
+    the objects of one set with each other, which packing the whole call's rows cannot serve.
+
+    ``order`` (..., W): the slot of each set's w-th present object (an absent slot past its count);
+    ``valid`` (..., W): whether that is a present object; ``place`` (..., O): each present slot's
+    place in ``order`` (clipped for the others); ``fits`` / ``all_fit`` as in :class:`PresentRows`.
+    """
+
+    order: Array
+    valid: Array
+    place: Array
+    fits: Array | None
+    all_fit: Array | None
+
+
+def first_present(present: Array, width: int, members_axis: str | None = MEMBERS_AXIS) -> FirstPresent:
+    """The per-set compaction of a present mask (..., O) to ``width`` slots (a stable sort puts the
+    present slots first)."""
+    present = jnp.asarray(present, bool)
+    order = jnp.argsort((~present).astype(jnp.int8), axis=-1, stable=True)[..., :width].astype(jnp.int32)
+    valid = jnp.take_along_axis(present, order, axis=-1)
+    place = jnp.clip(jnp.cumsum(present, axis=-1, dtype=jnp.int32) - 1, 0, width - 1)
+    fits = jnp.all(jnp.sum(present, axis=-1, dtype=jnp.int32) <= width)
+    return FirstPresent(order, valid, place, fits, _every_member(fits, members_axis))
+
+
+def per_set_plan(present: Array, packing: Packing | None) -> FirstPresent | None:
+    """:func:`first_present` at ``packing.set_width``, or ``None`` when that keeps every slot."""
+    if packing is None:
+        return None
+    width = packing.set_width(present.shape[-1])
+    if width >= present.shape[-1]:
+        return None
+    plan = first_present(present, width, packing.members_axis)
+    return plan if packing.fallback else plan.replace(fits=None, all_fit=None)
+
+
+def compact_or_dense(
+    plan: FirstPresent | None, compact: Callable[..., Any], dense: Callable[..., Any], *operands: Any
+) -> Any:
+    """``compact(plan, *operands)`` where every set fits the plan's width, else ``dense(*operands)``;
+    the plain-function twin of :func:`packed_or_dense`, with the same branch and choice per member."""
+    if plan is None:
+        return dense(*operands)
+    result = compact(plan, *operands)
+    if plan.fits is None:
+        return result
+    fallback = jax.lax.cond(plan.all_fit, _zeros_like_tree(result), dense, *operands)
+    return _own_choice(plan.fits, result, fallback)
 
 
 __all__ = [
     "MEMBERS_AXIS",
+    "FirstPresent",
     "Packing",
     "PresentRows",
     "broadcast_to_rows",
+    "compact_or_dense",
     "find_present_rows",
+    "first_present",
     "pack",
     "packed_or_dense",
+    "per_set_plan",
     "plan_for",
     "sum_rows",
     "unpack",
