@@ -350,7 +350,8 @@ def test_the_mixture_density_on_weighted_components_is_the_full_one():
 
         params = (loc, log_scale, logits)
         for rows, compacts in ((np.array([0, 2, 3]), True), (np.arange(4), False)):
-            weighted = present[rows] | ~jnp.any(present[rows], axis=-1, keepdims=True)  # §3.1.4
+            # an empty set's slots all carry weight (docs/algorithms.md §3.1.4)
+            weighted = present[rows] | ~jnp.any(present[rows], axis=-1, keepdims=True)
             assert bool(sets.first_present(weighted, width).fits) == compacts
             got = jax.value_and_grad(loss, has_aux=True)(params, rows, packing)
             want = jax.value_and_grad(loss, has_aux=True)(params, rows, None)
