@@ -178,7 +178,8 @@ def test_tracking_sets_are_always_full_so_its_presets_compute_densely():
         config = preset("paper", "tracking", algo)
         assert config.packed_rows is None
     assert preset("paper", "country_road", "xsac").packed_rows is not None
-    assert preset("quick", "intersection", "sac").packed_rows is not None
+    assert preset("paper", "intersection", "sac").packed_rows is not None
+    assert preset("quick", "intersection", "sac").packed_rows is None  # small layers: not worth it
 
 
 @pytest.mark.parametrize("algo", ["xsac"])

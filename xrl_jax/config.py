@@ -525,12 +525,13 @@ def parse_sweep(items: list[str] | tuple[str, ...]) -> tuple:
 # ---- Presets: agent hyper-parameters per (env, algo), train-loop settings per (preset, scenario) ----
 
 INTERSECTION_ALPHA = 0.015  # fixed entropy coefficient of all four intersection agents (§8.7 there)
-# Rows reserved per set for the present objects (xrl_jax.sets), from docs/set_occupancy.json: Country
-# Road's sets hold 28.9 cones on average (p99 47 of 100 slots), the Intersection's 0.48 other
-# vehicles (p99 3 of 8). A batch of 128 sets holds so many that these capacities leave over 6
-# standard deviations of its total spare; docs/performance.md shows the choice.
+# Rows reserved per set for the present objects (xrl_jax.sets). Country Road's sets hold 28.9 cones on
+# average (p99 47 of 100 slots, docs/set_occupancy.json); the Intersection's training buffer held 1.48
+# other vehicles per observation (sd 0.87) after 3,000 quick-preset steps, three times the random-driver
+# rollouts of docs/set_occupancy.json. A batch of 128 sets then leaves over 6 standard deviations of
+# its total spare; docs/performance.md shows the choice.
 COUNTRY_ROAD_PACKED_ROWS = 32.0
-INTERSECTION_PACKED_ROWS = 1.0
+INTERSECTION_PACKED_ROWS = 2.0
 
 # The quick preset's optimisation constants on the racing scenarios, chosen for a budget of tens of
 # thousands of steps: the paper starts at α = 0.1 and moves log α slowly, so over a short run the
@@ -614,7 +615,8 @@ def _paper_agent(env: str, algo: str) -> AgentConfig:
 
 def preset(name: str, env: str, algo: str) -> AgentConfig:
     """The agent of preset ``name`` for (env, algo): paper; quick = width 64 and, on the racing
-    scenarios, the short-budget optimisation constants; smoke = tiny networks."""
+    scenarios, the short-budget optimisation constants (on the Intersection, every slot computed);
+    smoke = tiny networks."""
     for kind, value, choices in (("preset", name, PRESETS), ("env", env, ENVS), ("algo", algo, ALGOS)):
         _check_choice("", kind, value, choices)
     agent = _paper_agent(env, algo)
@@ -622,6 +624,8 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
         agent = agent.replace(**QUICK_SIZES)
         if env != "intersection":  # Intersection keeps its fixed α (no start-up phase)
             agent = agent.replace(**QUICK_RACING_OPTIMISATION)
+        else:  # 8 slots at width 64: packing cost more than it saved end to end (docs/performance.md)
+            agent = agent.replace(packed_rows=None)
     elif name == "smoke":
         agent = agent.replace(**SMOKE_SIZES)
     return agent
