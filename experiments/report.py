@@ -6,9 +6,10 @@ Writes DIR/report.md with, per env, a results table (Markdown and CSV: final ret
 early-termination rate, or trips and early terminations on the intersection, as IQM [95 % CI] over
 seeds, with the paper's published value beside runs of the paper's protocol), a figure of final
 performance and learning curves per agent (the paper's Fig. 5-7), the sweep figure of every sweep
-run with its baseline (Fig. 8), and P(explainable agent > its baseline) with its CI. --controller
-adds the hand-written centre-line driver's score on the same evaluation tracks to the racing
-tables. Folders that are still running or lost a seed are reported as far as they go, and marked
+run with its baseline (Fig. 8), and P(explainable agent > its baseline) with its CI, at the end and
+early in the run (Fig. 7). --controller adds each scenario's yardstick on the same evaluation: the
+hand-written centre-line driver on the racing tracks, the scripted driver on the Intersection.
+Folders that are still running or lost a seed are reported as far as they go, and marked
 incomplete.
 """
 
@@ -19,17 +20,27 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, positive_speed
+from cli_args import OneLineParser, fraction, positive_speed
+
+DRIVERS_DEFAULT = "default"  # --controller without a speed: each driver's own
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="report.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="results folders of experiments/run.py")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder of the report (created)")
-    parser.add_argument("--controller", nargs="?", type=positive_speed, const=8.0, metavar="M_PER_S",
-                        help="also drive the hand controller of docs/carenv-single-agent.md §8.3 on the "
-                             "racing runs' evaluation tracks at this target speed (default 8 m/s) and "
-                             "show it in the tables and figures (~30 s per env)")  # fmt: skip
+    parser.add_argument("--controller", nargs="?", type=positive_speed, const=DRIVERS_DEFAULT,
+                        metavar="M_PER_S",
+                        help="also drive each scenario's yardstick on the runs' evaluation and show it in "
+                             "the tables and figures (~30 s per env): the hand controller of "
+                             "docs/carenv-single-agent.md §8.3 on the racing tracks (default 8 m/s), the "
+                             "scripted driver of envs/intersection_driver.py on the Intersection (default "
+                             "cruise speed 10 m/s); a speed given here is used for every "
+                             "scenario")  # fmt: skip
+    parser.add_argument("--early", type=fraction, default=0.25, metavar="FRACTION",
+                        help="also compare each explainable agent with its baseline at the evaluation "
+                             "nearest this fraction of the run (default 0.25: Fig. 7's 'early stages of "
+                             "training')")  # fmt: skip
     return parser
 
 
@@ -38,7 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     from xrl_jax.report import ReportError, write_report
 
     try:
-        report = write_report(args.runs, args.out, args.controller)
+        speed = None if args.controller in (None, DRIVERS_DEFAULT) else args.controller
+        report = write_report(args.runs, args.out, speed, args.controller is not None, args.early)
     except ReportError as err:
         print(f"report.py: error: {err}", file=sys.stderr)
         return 2

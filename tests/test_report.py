@@ -20,7 +20,8 @@ PNG = b"\x89PNG\r\n\x1a\n"
 
 
 def fake_run(folder: Path, env, algo, preset, returns, sweep=(), missing=()):
-    """A finished run whose member m ends with return ``returns[m]`` (ETR 0.1 each)."""
+    """A finished run whose member m ends with return ``returns[m]`` (ETR 0.1 each; on the
+    Intersection, trips = return / 5 and 3 early terminations; halfway, half of it)."""
     sweep = parse_sweep(list(sweep))
     points = len(sweep[0][1]) if sweep else 1
     cfg = resolve_config(env, algo, preset, num_seeds=len(returns) // points, sweep=sweep)
@@ -46,6 +47,10 @@ def fake_run(folder: Path, env, algo, preset, returns, sweep=(), missing=()):
                 "avg_episode_length": 9.0,
             },
         ]
+        if env == "intersection":
+            for row in rows:
+                row.update(avg_trips_completed=row["avg_return"] / 5, avg_early_terminations=3.0,
+                           avg_mean_velocity=6.0)  # fmt: skip
         (folder / "eval" / f"{member_stem(cfg, member)}.jsonl").write_text(
             "".join(json.dumps(r) + "\n" for r in rows)
         )
@@ -107,7 +112,14 @@ def test_report_cli_writes_tables_figures_and_report(folders, tmp_path, capsys):
                  "sweep_kappa.png"):  # fmt: skip
         assert (out / name).exists(), name
     assert (out / "tracking.png").read_bytes().startswith(PNG)
-    assert len(json.loads((out / "improvement.json").read_text())) == 2
+    found = json.loads((out / "improvement.json").read_text())
+    # Each pair at the end and at the shared evaluation nearest a quarter of the run (the only other
+    # one); xdsac's run lost a seed, so it has no curve and no early comparison.
+    assert sorted((r["x"].split()[0], str(r["step"])) for r in found) == [
+        ("xdsac", "final"),
+        ("xsac", "40000"),
+        ("xsac", "final"),
+    ]
     capsys.readouterr()
     assert cli.main([str(tmp_path / "nothing"), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -132,7 +144,7 @@ def test_controller_rows_use_each_envs_evaluation_tracks(folders, tmp_path, monk
         calls.append((scenario, eval_track_seed, episodes, target_speed))
         return {"target_speed": target_speed, "avg_return": 36.5, "avg_etr": 0.06, "episode_returns": []}
 
-    monkeypatch.setattr(evaluate_mod, "evaluate_hand_controller", fake_controller)
+    monkeypatch.setattr(evaluate_mod, "evaluate_yardstick", fake_controller)
     out = tmp_path / "with_controller"
     write_report(list(folders.values()), out, controller_speed=9.0)
     cfg = read_run(folders["sac"]).cfg
@@ -146,3 +158,46 @@ def test_controller_rows_use_each_envs_evaluation_tracks(folders, tmp_path, monk
         "country_road",
         "tracking",
     ]
+
+
+def test_intersection_report_shows_trips_and_early_terminations_with_the_scripted_driver(
+    tmp_path, monkeypatch
+):
+    """Fig. 7's quantities on the Intersection: the table and figure show completed trips and early
+    terminations, the scripted driver is the yardstick row, and P(explainable > baseline) is taken on
+    trips at the end and early in the run (the driving itself is tested in test_intersection_driver.py)."""
+    import xrl_jax.evaluate as evaluate_mod
+
+    calls = []
+
+    def fake_driver(scenario, eval_track_seed, episodes, target_speed):
+        calls.append((scenario, eval_track_seed, episodes, target_speed))
+        return {"target_speed": 10.0, "avg_return": 160.0, "avg_trips_completed": 26.2,
+                "avg_early_terminations": 2.4, "episode_returns": []}  # fmt: skip
+
+    monkeypatch.setattr(evaluate_mod, "evaluate_yardstick", fake_driver)
+    runs = [
+        fake_run(tmp_path / "dsac", "intersection", "dsac", "quick", [100.0, 110.0, 120.0, 130.0]),
+        fake_run(tmp_path / "xdsac", "intersection", "xdsac", "quick", [140.0, 150.0, 160.0, 170.0]),
+    ]
+    out = tmp_path / "report"
+    write_report(runs, out, controller=True)
+    cfg = read_run(runs[0]).cfg
+    assert calls == [("intersection", None, cfg.eval_episodes, None)]  # the driver's own cruise speed
+    table = (out / "results_intersection.md").read_text().splitlines()
+    assert table[0].startswith("| agent | preset | steps | seeds | folder | completed trips |")
+    assert "early terminations" in table[0]
+    assert table[-1].startswith("| scripted driver (10 m/s) | - | - | 5 episodes | - | 26.20 (mean) |")
+    assert (out / "intersection_pairs.png").read_bytes().startswith(PNG)
+    found = json.loads((out / "improvement.json").read_text())
+    # At the only earlier evaluation of the fakes and at the end; equal early terminations tie at 0.5.
+    assert [(r["metric"], r["step"], r["estimate"]) for r in found] == [
+        ("avg_trips_completed", cfg.total_steps // 2, 1.0),
+        ("avg_trips_completed", "final", 1.0),
+        ("avg_early_terminations", cfg.total_steps // 2, 0.5),
+        ("avg_early_terminations", "final", 0.5),
+    ]
+    assert (
+        "P(xdsac (quick, xdsac) > dsac (quick, dsac)) on completed trips, evaluation at step"
+        in (out / "report.md").read_text()
+    )

@@ -170,20 +170,29 @@ def make_evaluate_multiagent(env, eval_params, agent, num_episodes: int):
     env's metrics at the last step (trips completed, vehicles off the road, collided vehicles, mean
     velocity); early terminations = off-road + collided vehicles.
     """
+    return make_evaluate_multiagent_policy(
+        env, eval_params, lambda key, agent_state, obs: agent.act(key, agent_state, obs, "eval"), num_episodes
+    )
+
+
+def make_evaluate_multiagent_policy(env, eval_params, policy, num_episodes: int):
+    """:func:`make_evaluate_multiagent` for any ``policy(key, policy_state, obs) -> actions`` that
+    acts for every slot of a batch of episodes (obs leaves ``(episodes, 8, ...)``), e.g. the
+    scripted driver; ``evaluate(key, policy_state)``."""
     steps = int(eval_params.episode_steps)
     reset_keys, stream_keys = evaluation_episode_keys(jnp.arange(num_episodes))
     reset_all = jax.vmap(env.reset, in_axes=(0, None))
     step_all = jax.vmap(env.step, in_axes=(0, 0, 0, None))
     metric_keys = ("trips_completed", "come_off_vehicles", "collided_vehicles", "mean_velocity")
 
-    def evaluate(key, agent_state):
+    def evaluate(key, policy_state):
         obs, env_state = reset_all(reset_keys, eval_params)
         returns = jnp.zeros((num_episodes,), jnp.result_type(float))
 
         def body(carry, t):
             obs, env_state, returns, key = carry
             key, act_key = jax.random.split(key)
-            action = agent.act(act_key, agent_state, obs, "eval")
+            action = policy(act_key, policy_state, obs)
             step_keys = jax.vmap(evaluation_step_key, in_axes=(0, None))(stream_keys, t)
             obs, env_state, reward, _, _, info = step_all(step_keys, env_state, action, eval_params)
             returns = returns + jnp.sum(jnp.where(info["acted"], reward, 0.0), axis=-1)
@@ -259,11 +268,52 @@ def hand_controller_evaluation(scenario: str, eval_track_seed: int, episodes: in
     return score
 
 
-def evaluate_hand_controller(
+def scripted_driver_evaluation(episodes: int):
+    """``score(cruise_speed=None) -> averages``: the scripted Intersection driver
+    (:mod:`envs.intersection_driver`) in every slot, scored by the agents' evaluation
+    (:func:`make_evaluate_multiagent`: the same ``episodes`` episodes of 60 s with 8 vehicles), as
+    :func:`summarize_episodes`'s averages plus ``target_speed`` (the cruise speed). Compiled once;
+    the settings are inputs of the compiled evaluation."""
+    import envs
+    from envs.intersection_driver import DriverSettings, scripted_actions
+
+    env, params = envs.make("intersection")
+    eval_params = params.replace(max_vehicles=8)
+
+    def policy(key, settings, obs):
+        del key  # the driver is deterministic
+        return jax.vmap(scripted_actions, in_axes=(0, None, None))(obs, eval_params, settings)
+
+    evaluate = jax.jit(make_evaluate_multiagent_policy(env, eval_params, policy, episodes))
+
+    def score(cruise_speed: float | None = None, **changes) -> dict[str, Any]:
+        """The averages at ``cruise_speed`` (None: the default), other DriverSettings fields changed."""
+        settings = DriverSettings()._replace(**changes)
+        if cruise_speed is not None:
+            if not (math.isfinite(cruise_speed) and cruise_speed > 0):
+                raise ValueError(f"the cruise speed must be a positive number of m/s, got {cruise_speed}")
+            settings = settings._replace(cruise_speed=float(cruise_speed))
+        traced = jax.tree.map(jnp.asarray, settings)
+        episodes_out = jax.device_get(evaluate(jax.random.PRNGKey(0), traced))
+        return {"target_speed": settings.cruise_speed, **summarize_episodes(episodes_out)}
+
+    return score
+
+
+def yardstick_evaluation(scenario: str, eval_track_seed: int, episodes: int):
+    """The scenario's yardstick as ``score(speed=None)``: the hand controller on the racing
+    scenarios' held-out tracks, the scripted driver on the Intersection (whose evaluation episodes
+    are fixed, so ``eval_track_seed`` is not used there)."""
+    if scenario == "intersection":
+        return scripted_driver_evaluation(episodes)
+    return hand_controller_evaluation(scenario, eval_track_seed, episodes)
+
+
+def evaluate_yardstick(
     scenario: str, eval_track_seed: int, episodes: int, target_speed: float | None = None
 ) -> dict[str, Any]:
-    """The hand controller's score at one target speed (:func:`hand_controller_evaluation`)."""
-    return hand_controller_evaluation(scenario, eval_track_seed, episodes)(target_speed)
+    """The scenario's yardstick at one speed (:func:`yardstick_evaluation`)."""
+    return yardstick_evaluation(scenario, eval_track_seed, episodes)(target_speed)
 
 
 def read_jsonl(path: Path) -> list[dict]:

@@ -76,6 +76,22 @@ def paper_values() -> dict[tuple[str, str, str], dict]:
     return {(r["env"], r["algo"], r["metric"]): r for r in data["results"]}
 
 
+def table_metrics(env: str) -> tuple[tuple[str, str], ...]:
+    """The (key, label) pairs of ``env``'s table; the first two are its figure's (the paper's Fig. 5/6:
+    return and early-termination rate; on the Intersection Fig. 7's trips and early terminations)."""
+    metrics = dict(evaluate_mod.summary_metrics(env))
+    if env == "intersection":
+        keys = ("avg_trips_completed", "avg_early_terminations", "avg_return")
+    else:
+        keys = ("avg_return", "avg_etr")
+    return tuple((key, metrics[key]) for key in keys)
+
+
+def yardstick_name(env: str, speed: float) -> str:
+    kind = "scripted driver" if env == "intersection" else "hand controller"
+    return f"{kind} ({speed:g} m/s)"
+
+
 def _cell(agg: dict | None) -> str:
     return f"{agg['estimate']:.2f} [{agg['low']:.2f}, {agg['high']:.2f}]" if agg else "-"
 
@@ -91,7 +107,7 @@ def results_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
     """The table of one env: a row per plain run (sweeps have their own figure), ordered by agent;
     the paper's value beside ours only where the run used the paper's protocol."""
     published = paper_values()
-    metrics = evaluate_mod.summary_metrics(env)[:2]
+    metrics = table_metrics(env)
     rows = []
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
     for run in sorted(plain, key=lambda r: (ALGO_ORDER.index(r.cfg.algo), r.cfg.preset, r.folder.name)):
@@ -114,22 +130,25 @@ def results_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
 
 
 def controller_rows(
-    runs: list[Run], env: str, target_speed: float
+    runs: list[Run], env: str, target_speed: float | None = None
 ) -> tuple[list[dict[str, str]], list[dict]]:
-    """The hand controller's rows of ``env``'s table and its results, one per set of evaluation
-    tracks the env's plain runs used (normally one): its mean over those tracks, the yardstick of
-    docs/carenv-single-agent.md §8.3 (a deterministic driver has no seeds to take an IQM over)."""
-    if env not in ("tracking", "country_road"):
-        return [], []
-    metrics = evaluate_mod.summary_metrics(env)[:2]
-    track_sets = sorted({(r.cfg.eval_track_seed, r.cfg.eval_episodes) for r in runs
-                         if r.cfg.env == env and not r.is_sweep})  # fmt: skip
+    """The yardstick's rows of ``env``'s table and its results, one per evaluation the env's plain
+    runs used (normally one): its mean over the evaluation's episodes (a deterministic driver has no
+    seeds to take an IQM over). Racing: the hand controller of docs/carenv-single-agent.md §8.3 on
+    the runs' held-out tracks; Intersection: the scripted driver of :mod:`envs.intersection_driver`
+    on the runs' evaluation episodes. ``target_speed`` None is the driver's own default."""
+    metrics = table_metrics(env)
+    multi = env == "intersection"  # its evaluation episodes are fixed: no track seed
+    track_sets = sorted({(None if multi else r.cfg.eval_track_seed, r.cfg.eval_episodes) for r in runs
+                         if r.cfg.env == env and not r.is_sweep}, key=str)  # fmt: skip
     rows, results = [], []
     for seed, episodes in track_sets:
-        result = evaluate_mod.evaluate_hand_controller(env, seed, episodes, target_speed)
-        results.append({"env": env, "eval_track_seed": seed, "episodes": episodes, **result})
-        row = {"agent": f"hand controller ({result['target_speed']:g} m/s)", "preset": "-", "steps": "-",
-               "seeds": f"{episodes} tracks (seed {seed})", "folder": "-"}  # fmt: skip
+        result = evaluate_mod.evaluate_yardstick(env, seed, episodes, target_speed)
+        where = {"episodes": episodes} if multi else {"eval_track_seed": seed, "episodes": episodes}
+        results.append({"env": env, **where, **result})
+        seeds = f"{episodes} episodes" if multi else f"{episodes} tracks (seed {seed})"
+        row = {"agent": yardstick_name(env, result["target_speed"]), "preset": "-", "steps": "-",
+               "seeds": seeds, "folder": "-"}  # fmt: skip
         for key, label in metrics:
             row[label] = f"{result[key]:.2f} (mean)"
             row[f"paper: {label}"] = "-"
@@ -156,22 +175,53 @@ def csv_table(rows: list[dict[str, str]]) -> str:
     return out.getvalue()
 
 
-def improvements(runs: list[Run], env: str, metric: str = "avg_return") -> list[dict[str, Any]]:
+def improvement_metrics(env: str) -> tuple[str, ...]:
+    """The metrics P(explainable > baseline) is taken on: return; on the Intersection, Fig. 7's
+    completed trips and early terminations (there a value below 0.5 favours the explainable agent)."""
+    return ("avg_trips_completed", "avg_early_terminations") if env == "intersection" else ("avg_return",)
+
+
+def _scores_at(run: Run, metric: str, step: int | None) -> np.ndarray:
+    """Every seed's ``metric`` at evaluation ``step`` (None: the final one); empty where not all
+    seeds have reached the step."""
+    if step is None:
+        return run.final_scores(metric)
+    point = next((p for p in run.summary["curve"] if p["step"] == step and metric in p), None)
+    return np.array(point[metric]["per_seed"] if point else [], np.float64)
+
+
+def early_step(x: Run, y: Run, fraction: float) -> int | None:
+    """The evaluation step both runs have that lies nearest ``fraction`` of the way through x's run
+    (the 'early stage of training' of Fig. 7); None if they share no evaluation step."""
+    shared = sorted({p["step"] for p in x.summary["curve"]} & {p["step"] for p in y.summary["curve"]})
+    if not shared:
+        return None
+    return min(shared, key=lambda step: (abs(step - fraction * x.cfg.total_steps), step))
+
+
+def improvements(
+    runs: list[Run], env: str, metric: str | None = None, early_fraction: float | None = None
+) -> list[dict[str, Any]]:
     """P(X > Y) with its 95 % bootstrap CI of each explainable agent X against its baseline Y, for
-    every pair of complete-enough plain runs of ``env`` with the same preset (the final ``metric``
-    of each seed)."""
+    every pair of complete-enough plain runs of ``env`` with the same preset, on each seed's final
+    ``metric`` (default: each of :func:`improvement_metrics`) and, with ``early_fraction``, also at the shared
+    evaluation step nearest that fraction of the run (:func:`early_step`; ``"step"`` in the record)."""
+    metrics = (metric,) if metric else improvement_metrics(env)
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
     out = []
     for x in plain:
         for y in plain:
             if BASELINES.get(x.cfg.algo) != y.cfg.algo or x.cfg.preset != y.cfg.preset:
                 continue
-            xs, ys = x.final_scores(metric), y.final_scores(metric)
-            if xs.size == 0 or ys.size == 0:
-                continue
-            interval = stats.probability_of_improvement_ci(xs, ys)
-            out.append({"x": x.label, "y": y.label, "metric": metric, **interval.as_dict(),
-                        "seeds": [int(xs.size), int(ys.size)]})  # fmt: skip
+            early = None if early_fraction is None else early_step(x, y, early_fraction)
+            for name in metrics:
+                for step in [early, None] if early is not None else [None]:
+                    xs, ys = _scores_at(x, name, step), _scores_at(y, name, step)
+                    if xs.size == 0 or ys.size == 0:
+                        continue
+                    interval = stats.probability_of_improvement_ci(xs, ys)
+                    out.append({"x": x.label, "y": y.label, "metric": name, "step": step or "final",
+                                **interval.as_dict(), "seeds": [int(xs.size), int(ys.size)]})  # fmt: skip
     return out
 
 
@@ -184,7 +234,7 @@ def plot_env(runs: list[Run], env: str, path: Path, references: list[dict] | Non
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["curve"]]
     if not plain:
         return None
-    metrics = evaluate_mod.summary_metrics(env)[:2]
+    metrics = table_metrics(env)[:2]
     algos = [r.cfg.algo for r in plain]
     # The agent's name says it all when each agent has one run here; otherwise preset and folder too.
     labels = [r.cfg.algo if algos.count(r.cfg.algo) == 1 else r.label for r in plain]
@@ -209,7 +259,7 @@ def plot_env(runs: list[Run], env: str, path: Path, references: list[dict] | Non
             bars.errorbar(estimates, range(len(names)), xerr=np.array(errors).T, fmt="o", capsize=4)
             bars.set_yticks(range(len(names)), names)
         for reference in references or []:
-            name = f"hand controller, {reference['target_speed']:g} m/s"
+            name = yardstick_name(env, reference["target_speed"])
             bars.axvline(reference[key], color="black", linestyle="--", linewidth=1, label=name)
             curves.axhline(reference[key], color="black", linestyle="--", linewidth=1, label=name)
         bars.set_title(f"{label} (IQM, 95 % CI)")
@@ -224,12 +274,63 @@ def plot_env(runs: list[Run], env: str, path: Path, references: list[dict] | Non
     return path
 
 
-def write_report(folders: list[str | Path], out: str | Path, controller_speed: float | None = None) -> Path:
+def plot_pairs(runs: list[Run], env: str, path: Path, references: list[dict] | None = None) -> Path | None:
+    """The paper's Fig. 7 layout: one row per pair of an explainable agent and its baseline (XSAC
+    against SAC, XDSAC against DSAC), one column per figure metric (on the Intersection, completed
+    trips and early terminations), each run's learning curve as IQM with its 95 % CI band, and the
+    yardstick of ``references`` as a dashed line. None if no pair has a curve."""
+    from matplotlib.figure import Figure
+
+    plain = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["curve"]]
+    pairs = [(x, y) for x in plain for y in plain
+             if BASELINES.get(x.cfg.algo) == y.cfg.algo and x.cfg.preset == y.cfg.preset]  # fmt: skip
+    if not pairs:
+        return None
+    metrics = table_metrics(env)[:2]
+    figure = Figure(figsize=(10.0, 3.2 * len(pairs)), layout="constrained")
+    axes = figure.subplots(len(pairs), len(metrics), squeeze=False)
+    for row, pair in enumerate(pairs):
+        for column, (key, label) in enumerate(metrics):
+            ax = axes[row][column]
+            for colour, run in zip(("C0", "C3"), pair, strict=True):
+                points = [p for p in run.summary["curve"] if key in p]
+                steps = [p["step"] for p in points]
+                seeds = len(run.summary["curve"][0][key]["per_seed"]) if points else 0
+                ax.plot(steps, [p[key]["estimate"] for p in points], color=colour,
+                        label=f"{run.cfg.algo} ({seeds} seeds)")  # fmt: skip
+                ax.fill_between(steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
+                                color=colour, alpha=0.2, linewidth=0)  # fmt: skip
+            for reference in references or []:
+                ax.axhline(reference[key], color="black", linestyle="--", linewidth=1,
+                           label=yardstick_name(env, reference["target_speed"]))  # fmt: skip
+            ax.set_title(f"{evaluate_mod._curve_label(label)} (IQM, 95 % CI)")
+            ax.set_xlabel("environment steps per seed")
+            evaluate_mod.format_step_axis(ax)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize="small")
+    figure.suptitle(f"{env}: each explainable agent against its baseline")
+    figure.savefig(path, dpi=110)
+    return path
+
+
+EARLY_FRACTION = 0.25  # "early stages of training" (Fig. 7): the evaluation nearest a quarter of the run
+
+
+def write_report(
+    folders: list[str | Path],
+    out: str | Path,
+    controller_speed: float | None = None,
+    controller: bool = False,
+    early_fraction: float = EARLY_FRACTION,
+) -> Path:
     """Read ``folders`` and write ``out``/report.md with the tables (``results_<env>.md/.csv``),
     figures (``<env>.png``, ``sweep_<folder>.png``) and improvement probabilities
-    (``improvement.json``); returns the path of report.md. With ``controller_speed`` (m/s), the
-    racing tables and figures also show the hand controller driven on the runs' evaluation tracks
-    (``controller.json``)."""
+    (``improvement.json``, at the end and at the evaluation nearest ``early_fraction`` of the run);
+    returns the path of report.md. With ``controller`` or a ``controller_speed`` (m/s; None: each
+    driver's default), the tables and figures also show each scenario's yardstick driven on the runs'
+    evaluation (``controller.json``): the hand controller on the racing tracks, the scripted driver
+    on the Intersection."""
+    controller = controller or controller_speed is not None
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     runs = [read_run(folder) for folder in folders]
@@ -243,7 +344,7 @@ def write_report(folders: list[str | Path], out: str | Path, controller_speed: f
         lines += [f"## {env}", ""]
         rows = results_rows(runs, env)
         references = []
-        if controller_speed is not None:
+        if controller:
             reference_rows, references = controller_rows(runs, env, controller_speed)
             rows += reference_rows
             all_references += references
@@ -253,12 +354,19 @@ def write_report(folders: list[str | Path], out: str | Path, controller_speed: f
         figure = plot_env(runs, env, out / f"{env}.png", references)
         if figure is not None:
             lines += [f"![{env}]({figure.name})", ""]
-        found = improvements(runs, env)
+        if env == "intersection":  # the paper's Fig. 7: learning curves of each pair
+            pairs = plot_pairs(runs, env, out / f"{env}_pairs.png", references)
+            if pairs is not None:
+                lines += [f"![{env}: pairs]({pairs.name})", ""]
+        found = improvements(runs, env, early_fraction=early_fraction)
         all_improvements += found
+        labels = dict(evaluate_mod.summary_metrics(env))
         for item in found:
             interval = f"{item['estimate']:.2f} [{item['low']:.2f}, {item['high']:.2f}]"
             seeds = f"{item['seeds'][0]} vs {item['seeds'][1]} seeds"
-            lines.append(f"- P({item['x']} > {item['y']}) on final return: {interval} ({seeds})")
+            when = "final evaluation" if item["step"] == "final" else f"evaluation at step {item['step']:,}"
+            metric = labels[item["metric"]].removeprefix("final ")
+            lines.append(f"- P({item['x']} > {item['y']}) on {metric}, {when}: {interval} ({seeds})")
         finished = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["aggregate"]]
         for run in (r for r in runs if r.cfg.env == env and r.is_sweep):
             baseline = next((b for b in finished if b.cfg.algo == BASELINES.get(run.cfg.algo)), None)
@@ -268,9 +376,11 @@ def write_report(folders: list[str | Path], out: str | Path, controller_speed: f
                 lines += ["", f"Sweep {run.label}: {run.status()}", "", f"![sweep]({path.name})"]
         lines.append("")
     (out / "improvement.json").write_text(json.dumps(all_improvements, indent=2) + "\n")
-    if controller_speed is not None:
+    if controller:
         lines += ["The hand controller (docs/carenv-single-agent.md §8.3) follows the centre line at a "
-                  "target speed; its value is the mean over the evaluation tracks.", ""]  # fmt: skip
+                  "target speed; the scripted Intersection driver (envs/intersection_driver.py) follows "
+                  "its route, slows for turns and gives way to a car that reaches a crossing point first. "
+                  "Their values are means over the evaluation's tracks or episodes.", ""]  # fmt: skip
         (out / "controller.json").write_text(json.dumps(all_references, indent=2) + "\n")
     report = out / "report.md"
     report.write_text("\n".join(lines) + "\n")
