@@ -7,8 +7,8 @@ kappa sweep of Fig. 8 (discrete Country Road, kappa = -0.01 ... 0.1) and the Tab
 Country Road with its mixture weights from hidden layer 1 and 2; layer 3 is the main XSAC run).
 A finished run is skipped, a started one resumed, so the same command continues a stopped campaign
 (Ctrl-C or SIGTERM stop the running run cleanly and end the campaign). At the end it writes the
-report (experiments/report.py, with the hand controller's score on the racing tracks unless
---no-controller) to DIR/report. ``--dry-run`` prints the plan instead: every run, its
+report (experiments/report.py, with each scenario's yardstick unless --no-controller) to
+DIR/report. ``--dry-run`` prints the plan instead: every run, its
 members, the memory per member and the groups on this machine's devices, the FLOPs per update as
 it runs (XLA's cost analysis of the packed per-object layers, weighted with the measured chance
 that a batch holds too many objects for them; beside it the every-slot count; docs/performance.md)
@@ -119,9 +119,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="only the runs of this name or shell-style pattern (repeatable), e.g. 'tracking-*'",
     )
     parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a run setting for every run this command starts (repeatable), e.g. checkpoint_minutes=10; "
+        "resumed runs keep their own",
+    )
+    parser.add_argument(
         "--no-controller",
         action="store_true",
-        help="leave the hand controller out of the report (it takes ~30 s per racing env)",
+        help="leave the yardsticks out of the report (hand controller, scripted Intersection driver; "
+        "~30 s per env)",
     )
     parser.add_argument(
         "--utilisation",
@@ -235,7 +244,8 @@ def main(argv: list[str] | None = None) -> int:
         if status == "started":
             argv_run = ["--resume", str(folder), "--quiet"]
         else:
-            argv_run = [*planned.args(args.preset, args.seeds), "--out", str(folder), "--quiet"]
+            extra = [word for item in args.set for word in ("--set", item)]
+            argv_run = [*planned.args(args.preset, args.seeds), *extra, "--out", str(folder), "--quiet"]
         print(
             f"paper.py: {planned.name}: {'resuming' if status == 'started' else 'starting'}",
             file=sys.stderr,
@@ -250,11 +260,10 @@ def main(argv: list[str] | None = None) -> int:
             return code
         if code != 0:
             failed.append(planned.name)
-    from envs.hand_controller import DEFAULT_TARGET_SPEED
     from xrl_jax.report import write_report
 
     folders = [out / r.name for r in runs if (out / r.name / "config.json").is_file()]
-    report = write_report(folders, out / "report", None if args.no_controller else DEFAULT_TARGET_SPEED)
+    report = write_report(folders, out / "report", controller=not args.no_controller)
     print(f"report: {report}")
     if failed:
         print(

@@ -1,6 +1,8 @@
 """The campaign script: its plan, one run end to end with the report, skipping what is done, bad input.
 The whole campaign at the smoke preset is a slow test (15 runs)."""
 
+import json
+
 import pytest
 from train_support import call, load_script, one_line_error, prepare_cache
 
@@ -46,9 +48,13 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
         "--only",
         "tracking-dsac",
         "--no-controller",
+        "--set",
+        "checkpoint_minutes=10",
     ]
     status, text, err = call(paper, capsys, *args)
     assert status == 0, err
+    config = json.loads((out / "tracking-dsac" / "config.json").read_text())
+    assert config["config"]["checkpoint_minutes"] == 10.0  # --set reaches the runs it starts
     assert (out / "tracking-dsac" / "summary.json").is_file() and (out / "report" / "report.md").is_file()
     assert "tracking-dsac: starting" in err and "report:" in text
     status, _, err = call(paper, capsys, *args)
@@ -72,3 +78,4 @@ def test_the_whole_campaign_at_the_smoke_preset(paper, capsys, tmp_path):
     assert all(f"## {env}" in report for env in ("country_road", "tracking", "intersection"))
     assert (out / "report" / "sweep_country_road-xdsac-kappa.png").is_file()
     assert report.count("| hand controller (8 m/s) |") == 2  # the two racing envs
+    assert report.count("| scripted driver (10 m/s) |") == 1
