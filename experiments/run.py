@@ -36,7 +36,8 @@ presets:
   smoke  a few hundred steps with tiny networks, for tests
   intersection (multi-agent, one shared policy): paper = the released configs (5e6 env steps,
          buffer 1.5e7 agent transitions, batch 512, 2 envs, re-initialisation every 500,001 steps,
-         evaluation on 20 episodes of 60 s with 8 vehicles); quick = 20k env steps, width 64
+         evaluation on 20 episodes of 60 s with 8 vehicles); quick = 200k env steps, width 64,
+         batch 128, fixed alpha 0.005, lr 6e-4, evaluation every 10k steps on 10 episodes
 
 --set KEY=VALUE overrides one setting (repeatable); values are parsed with the setting's type
   (integers also as 1e6, optional ones as none). Unknown keys fail with the list of allowed ones.

@@ -43,9 +43,10 @@ def test_presets_resolve_with_the_spec_values():
     constant = resolve_config("tracking", "xsac", "quick", overrides={"lr_decay_updates": "0"})
     assert constant.agent.lr_decay_updates == 0
     assert paper.agent.lr_decay_updates == 0
-    ix = resolve_config("intersection", "xdsac", "quick").agent  # keeps the paper's fixed α = 0.015
-    assert (ix.init_alpha, ix.auto_alpha, ix.gamma) == (0.015, False, 0.95)
-    assert ix.lr_decay_updates == 0
+    ix = resolve_config("intersection", "xdsac", "quick").agent  # a fixed α, lower than the paper's 0.015
+    assert (ix.init_alpha, ix.auto_alpha, ix.gamma) == (0.005, False, 0.95)
+    assert (ix.actor_lr, ix.critic_lr, ix.lr_decay_updates) == (6e-4, 6e-4, 0)
+    assert resolve_config("intersection", "dsac", "quick").agent.actor_lr == 6e-4  # one rate for all four
     smoke = resolve_config("country_road", "sac", "smoke", total_steps=128)
     assert smoke.total_steps == 128 and smoke.agent.actor_width == 16
 
