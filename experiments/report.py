@@ -22,7 +22,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cli_args import OneLineParser, fraction, positive_speed
 
-DRIVERS_DEFAULT = "default"  # --controller without a speed: each driver's own
+DRIVERS_DEFAULT = 0.0  # --controller without a speed: each driver's own (not a str: argparse would parse it)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     from xrl_jax.report import ReportError, write_report
 
     try:
-        speed = None if args.controller in (None, DRIVERS_DEFAULT) else args.controller
+        speed = None if args.controller in (None, DRIVERS_DEFAULT) else args.controller  # None: the defaults
         report = write_report(args.runs, args.out, speed, args.controller is not None, args.early)
     except ReportError as err:
         print(f"report.py: error: {err}", file=sys.stderr)

@@ -100,18 +100,25 @@ def test_bad_input_gets_one_line(capsys):
         (["--env", "tracking", "--speeds", "0"], "positive, finite speed"),
         (["--env", "tracking", "--speeds", "nan"], "positive, finite speed"),
         (["--env", "tracking", "--speeds", "fast"], "expected a speed"),
-        (["--env", "intersection"], "invalid choice"),
+        (["--env", "moon"], "invalid choice"),
         (["--env", "tracking", "--episodes", "0"], "positive integer"),
     ):
         one_line_error(*call(controller_cli, capsys, *argv)[::2], "controller.py: error:", fragment)
 
 
 def test_the_command_lines_default_to_the_reference_speed():
-    """experiments/ parse arguments without importing jax, so they spell the default speed out."""
+    """experiments/ parse arguments without importing jax, so they spell the default speeds out;
+    report.py --controller without a speed leaves each driver at its own."""
+    from envs.intersection_driver import DriverSettings
+
+    assert {
+        "tracking": hand_controller.DEFAULT_TARGET_SPEED,
+        "country_road": hand_controller.DEFAULT_TARGET_SPEED,
+        "intersection": DriverSettings().cruise_speed,
+    } == controller_cli.DEFAULT_SPEEDS
+    assert controller_cli.build_parser().parse_args(["--env", "tracking"]).speeds is None  # the table's
     report_cli = load_script("report", "report_cli_for_speed")
-    assert report_cli.build_parser().parse_args(["run", "--out", "o", "--controller"]).controller == (
-        hand_controller.DEFAULT_TARGET_SPEED
-    )
-    assert controller_cli.build_parser().parse_args(["--env", "tracking"]).speeds == [
-        hand_controller.DEFAULT_TARGET_SPEED
-    ]
+    parse = report_cli.build_parser().parse_args
+    assert parse(["run", "--out", "o", "--controller"]).controller == report_cli.DRIVERS_DEFAULT
+    assert parse(["run", "--out", "o", "--controller", "9"]).controller == 9.0
+    assert parse(["run", "--out", "o"]).controller is None

@@ -187,7 +187,9 @@ def test_intersection_report_shows_trips_and_early_terminations_with_the_scripte
     table = (out / "results_intersection.md").read_text().splitlines()
     assert table[0].startswith("| agent | preset | steps | seeds | folder | completed trips |")
     assert "early terminations" in table[0]
-    assert table[-1].startswith("| scripted driver (10 m/s) | - | - | 5 episodes | - | 26.20 (mean) |")
+    assert table[-1].startswith(
+        f"| scripted driver (10 m/s) | - | - | {cfg.eval_episodes} episodes | - | 26.20 (mean) |"
+    )
     assert (out / "intersection_pairs.png").read_bytes().startswith(PNG)
     found = json.loads((out / "improvement.json").read_text())
     # At the only earlier evaluation of the fakes and at the end; equal early terminations tie at 0.5.
