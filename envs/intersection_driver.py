@@ -10,13 +10,13 @@ so it drives every slot of the multi-agent env the way a policy does, with conti
 * **Speed.** A cruise speed, lowered to a turn speed while the route ahead bends (the point
   ``turn_lookahead`` metres ahead lies more than 0.3 rad off the car's axis): the 4.5 m turns
   cannot be taken at cruise speed. Full throttle below the target, full brake well above it.
-* **Caution** (``caution=True``). Each other car in view is extrapolated at its current speed and
-  heading; the ego is placed along its own route at ``max(speed, creep_speed)``. If within
-  ``horizon`` seconds the two come closer than ``clearance`` metres, the ego brakes to a stop,
-  but only for a car it should give way to: one not behind it that is on its right or straight
-  ahead (right before left; a car ahead in its own lane is followed), or an oncoming car while the
-  ego's route turns left. Symmetric stand-offs are broken by that rule; a stand-off of four cars,
-  each on the next one's right, breaks when one of them moves out of the others' predicted paths.
+* **Caution** (``caution=True``). Each other car in view is taken to drive straight on at its
+  current speed and heading. Where that line comes within ``clearance`` metres of a point of the
+  ego's route, the two paths cross; each car's time to that point is its distance over its speed
+  (at least ``creep_speed``, so stopped cars still get an order). The ego brakes to a stop for a car
+  that gets there first, if the ego itself would get there within ``horizon`` seconds; a car ahead
+  in its own lane counts (its path crosses the route at its own position), a car behind does not.
+  Two cars waiting for each other cannot both yield: the one nearer the crossing goes.
 
 The other car's speed is read as the norm of its observed velocity, which the original's frame bug
 (§9 Q2 there) rotates but does not scale; its heading comes from the (cos, sin) columns.

@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, non_negative_int, positive_int
+from cli_args import OneLineParser, fraction, non_negative_int, positive_int
 
 FORMATS = (".png", ".gif", ".mp4")
 EPISODE_ENVS = ("country_road", "tracking")  # single-agent scenarios with fixed evaluation tracks
@@ -40,16 +40,6 @@ def _stored_env(run: Path) -> str | None:
         return json.loads((run / "config.json").read_text())["config"]["env"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
-
-
-def unit_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {value}")
-    return value
 
 
 EPILOG = """\
@@ -99,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--key", type=non_negative_int, default=0, help="PRNG key of the episode (default 0)")
     parser.add_argument(
         "--threshold",
-        type=unit_float,
+        type=fraction,
         default=0.05,
         help="objects lighter than this are left unmarked (default 0.05)",
     )
