@@ -265,7 +265,7 @@ def bench_tracks(seeds: int, count: int, repeats: int) -> dict:
     import envs
     from envs.track_feed import init_feed, refill_feed
     from envs.track_generator import generate_track
-    from xrl_jax.train.tracks import cached_track_bank
+    from xrl_jax.tracks import cached_track_bank
 
     bank = cached_track_bank(1, 1)
     env, template = envs.make("tracking", track=jax.tree.map(lambda leaf: leaf[0], bank))

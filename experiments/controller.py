@@ -66,7 +66,7 @@ def _intersection_table(results: list[dict]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from xrl_jax.evaluate import yardstick_evaluation
+    from xrl_jax.evaluation import yardstick_evaluation
 
     speeds = args.speeds or [DEFAULT_SPEEDS[args.env]]
     episodes = args.episodes or DEFAULT_EPISODES[args.env]

@@ -57,8 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     run = Path(args.run)
     import jax
 
-    from xrl_jax import evaluate as evaluate_mod
+    from xrl_jax.evaluation import make_evaluate, summarize_episodes
     from xrl_jax.explain import RunError, load_trained_agents, read_run_config
+    from xrl_jax.runs.summary import aggregate_metrics, summary_metrics
     from xrl_jax.sets import MEMBERS_AXIS
 
     try:
@@ -78,14 +79,14 @@ def main(argv: list[str] | None = None) -> int:
     episodes = available if args.episodes is None else args.episodes
     if episodes > available:
         return fail(f"--episodes {episodes}: the run's {args.tracks} tracks are only {available}")
-    evaluate_one = evaluate_mod.make_evaluate(trainer.env, params, trainer.agent, episodes, args.mode)
+    evaluate_one = make_evaluate(trainer.env, params, trainer.agent, episodes, args.mode)
     evaluate = jax.jit(jax.vmap(evaluate_one, in_axes=(None, 0), axis_name=MEMBERS_AXIS))
     results = jax.device_get(evaluate(jax.random.PRNGKey(args.key), agent_states))  # all seeds at once
-    from xrl_jax.train.run_folder import member_fields
+    from xrl_jax.runs.folder import member_fields
 
     per_seed = []
     for member in range(cfg.num_members):  # a plain run's members are its seeds
-        result = evaluate_mod.summarize_episodes(jax.tree.map(lambda x, m=member: x[m], results))
+        result = summarize_episodes(jax.tree.map(lambda x, m=member: x[m], results))
         fields = member_fields(cfg, member)
         per_seed.append({**fields, **result} if cfg.num_points > 1 else {"seed": fields["seed"], **result})
         where = f"point {fields['point']} {fields['sweep']} " if cfg.num_points > 1 else ""
@@ -95,9 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     aggregates = []
     for point, values in enumerate(cfg.sweep_points):
         rows = [per_seed[m] for m in cfg.point_members(point)]
-        aggregate = evaluate_mod.aggregate_metrics(rows, cfg.env)
+        aggregate = aggregate_metrics(rows, cfg.env)
         aggregates.append({"point": point, "values": values, "aggregate": aggregate})
-        for key, label in evaluate_mod.summary_metrics(cfg.env):
+        for key, label in summary_metrics(cfg.env):
             if key in aggregate:
                 agg = aggregate[key]
                 interval = f"[{agg['low']:.3f}, {agg['high']:.3f}]"

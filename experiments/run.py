@@ -276,8 +276,8 @@ def _read_baseline(args, cfg) -> tuple[dict | None, str | None]:
 
 
 def _main(args, argv, stop) -> int:
+    from xrl_jax.runs.folder import RunFolderError, RunLock, holds_results
     from xrl_jax.train import ConfigError, TrainConfig
-    from xrl_jax.train.run_folder import RunFolderError, RunLock, holds_results
 
     given_any = any(
         v is not None
@@ -347,21 +347,19 @@ def _train(args, argv, cfg, out: Path, stop, baseline: dict | None) -> int:
     ``baseline``: the --baseline run's summary, drawn into a sweep's figure."""
     from xrl_jax.checkpoint import NoGoodCheckpointError
     from xrl_jax.interrupts import RunInterrupted, exit_status
+    from xrl_jax.runs.folder import RunFolderError
     from xrl_jax.train import ConfigError, DiskFullError, DivergenceError, MemoryPlanError
-    from xrl_jax.train.run_folder import RunFolderError
 
     enable_compilation_cache()
-    from xrl_jax import evaluate as evaluate_mod
     from xrl_jax import train as train_mod
+    from xrl_jax.runs import config_document, format_curve, format_table, plot_sweep
     from xrl_jax.train import hosts
 
     primary = hosts.is_primary()  # process 0 talks for the job; the others train quietly
     quiet = args.quiet or not primary
     log = (lambda *a, **k: None) if quiet else (lambda msg: print(msg, file=sys.stderr))
     if args.resume is None and primary:
-        document = evaluate_mod.config_document(
-            cfg, [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)]
-        )
+        document = config_document(cfg, [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)])
         train_mod.write_atomic(out / "config.json", json.dumps(document, indent=2, sort_keys=True) + "\n")
     resume_command = f"python experiments/run.py --resume {out}"
     stop.resume_hint = resume_command  # from now on the folder can be resumed
@@ -391,10 +389,10 @@ def _train(args, argv, cfg, out: Path, stop, baseline: dict | None) -> int:
     if not primary:
         return 0
     if baseline is not None and summary.get("sweep"):
-        evaluate_mod.plot_sweep(summary, out / "sweep.png", baseline)
-    print(evaluate_mod.format_curve(summary))
+        plot_sweep(summary, out / "sweep.png", baseline)
+    print(format_curve(summary))
     print()
-    print(evaluate_mod.format_table(summary))
+    print(format_table(summary))
     print(f"results: {out}")
     return 0
 

@@ -303,7 +303,7 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_not_in_the_way(run, 
     copy = tmp_path / "locked"
     shutil.copytree(smoke_run, copy)
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from xrl_jax.train.run_folder import RunLock; "
+        [sys.executable, "-c", "import sys, time; from xrl_jax.runs.folder import RunLock; "
          "lock = RunLock(sys.argv[1]).acquire(); print('held', flush=True); time.sleep(120)", str(copy)],
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip

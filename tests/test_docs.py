@@ -160,7 +160,7 @@ def test_the_papers_published_numbers_are_well_formed():
     import json
 
     from xrl_jax.config import ALGOS, ENVS
-    from xrl_jax.evaluate import summary_metrics
+    from xrl_jax.runs import summary_metrics
 
     data = json.loads((ROOT / "docs" / "paper_results.json").read_text())
     assert len(data["results"]) >= 10

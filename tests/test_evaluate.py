@@ -10,16 +10,10 @@ import pytest
 from train_support import prepare_cache
 
 from xrl_jax import stats
-from xrl_jax.evaluate import (
-    format_curve,
-    format_step_axis,
-    format_table,
-    learning_curve,
-    make_evaluate,
-    plot_learning_curve,
-    summarize_episodes,
-    summarize_run,
-)
+from xrl_jax.evaluation import make_evaluate, summarize_episodes
+from xrl_jax.runs.plots import format_step_axis, plot_learning_curve
+from xrl_jax.runs.summary import learning_curve, summarize_run
+from xrl_jax.runs.tables import format_curve, format_table
 from xrl_jax.train import make_envs, resolve_config
 
 

@@ -29,7 +29,7 @@ def cli(tmp_path_factory):
 def make_run_folder(folder: Path, env: str, algo: str) -> Path:
     """A smoke-preset results folder with one seed whose checkpoint is the initial run state."""
     from xrl_jax.checkpoint import save_checkpoint
-    from xrl_jax.evaluate import config_document
+    from xrl_jax.runs import config_document
     from xrl_jax.train import get_trainer, resolve_config
 
     cfg = resolve_config(env, algo, "smoke")
@@ -160,8 +160,8 @@ def make_intersection_run_folder(folder: Path, algo: str) -> Path:
     import jax
 
     from xrl_jax.checkpoint import save_checkpoint
-    from xrl_jax.evaluate import config_document
     from xrl_jax.explain import shared_trainer
+    from xrl_jax.runs import config_document
     from xrl_jax.train import resolve_config
 
     cfg = resolve_config("intersection", algo, "smoke")

@@ -338,7 +338,7 @@ def test_intersection_objects_name_the_observed_cars_and_put_the_neutral_one_at_
 
 
 def test_evaluation_episode_keys_follow_the_evaluation_protocol():
-    from xrl_jax.evaluate import EVAL_ENV_SEED, evaluation_episode_keys
+    from xrl_jax.evaluation import EVAL_ENV_SEED, evaluation_episode_keys
 
     reset_keys, stream_keys = evaluation_episode_keys(jnp.arange(3))
     for j in range(3):
@@ -353,7 +353,7 @@ def test_evaluation_episode_keys_follow_the_evaluation_protocol():
 @pytest.mark.slow
 def test_multiagent_rollout_replays_the_evaluation_episode():
     """The recorded episode j is evaluation episode j: same summed return and end-of-episode metrics."""
-    from xrl_jax.evaluate import make_evaluate_multiagent
+    from xrl_jax.evaluation import make_evaluate_multiagent
     from xrl_jax.explain import make_multiagent_episode_rollout
 
     env, params = envs.make("intersection_discrete", max_vehicles=8)

@@ -16,7 +16,7 @@ from envs import intersection_geometry as geo
 from envs.intersection_driver import DEFAULT_SETTINGS, DriverSettings, scripted_action, scripted_actions
 from envs.intersection_rules import observe
 from envs.intersection_state import ODOMETRY_DIM
-from xrl_jax.evaluate import scripted_driver_evaluation
+from xrl_jax.evaluation import scripted_driver_evaluation
 
 controller_cli = load_script("controller", "controller_cli")
 

@@ -136,7 +136,7 @@ def _worker_evaluate(out):
     import jax
     import jax.numpy as jnp
 
-    from xrl_jax.evaluate import make_evaluate
+    from xrl_jax.evaluation import make_evaluate
 
     class NanAgent:
         def act(self, key, state, obs, mode="train"):

@@ -11,9 +11,9 @@ from train_support import load_script
 
 from xrl_jax import stats
 from xrl_jax.config import parse_sweep, resolve_config
-from xrl_jax.evaluate import config_document
 from xrl_jax.report import improvements, read_run, results_rows, write_report
-from xrl_jax.train.run_folder import member_fields, member_stem
+from xrl_jax.runs import config_document
+from xrl_jax.runs.folder import member_fields, member_stem
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -136,7 +136,7 @@ def test_write_report_reads_a_folder_without_any_evaluation(tmp_path):
 def test_controller_rows_use_each_envs_evaluation_tracks(folders, tmp_path, monkeypatch):
     """--controller: one hand-controller row per racing env, driven on the tracks its runs evaluate
     on (the driving itself is tested in test_hand_controller.py; here a stand-in records the calls)."""
-    import xrl_jax.evaluate as evaluate_mod
+    import xrl_jax.report as report_mod
 
     calls = []
 
@@ -144,7 +144,7 @@ def test_controller_rows_use_each_envs_evaluation_tracks(folders, tmp_path, monk
         calls.append((scenario, eval_track_seed, episodes, target_speed))
         return {"target_speed": target_speed, "avg_return": 36.5, "avg_etr": 0.06, "episode_returns": []}
 
-    monkeypatch.setattr(evaluate_mod, "evaluate_yardstick", fake_controller)
+    monkeypatch.setattr(report_mod, "evaluate_yardstick", fake_controller)
     out = tmp_path / "with_controller"
     write_report(list(folders.values()), out, controller_speed=9.0)
     cfg = read_run(folders["sac"]).cfg
@@ -166,7 +166,7 @@ def test_intersection_report_shows_trips_and_early_terminations_with_the_scripte
     """Fig. 7's quantities on the Intersection: the table and figure show completed trips and early
     terminations, the scripted driver is the yardstick row, and P(explainable > baseline) is taken on
     trips at the end and early in the run (the driving itself is tested in test_intersection_driver.py)."""
-    import xrl_jax.evaluate as evaluate_mod
+    import xrl_jax.report as report_mod
 
     calls = []
 
@@ -175,7 +175,7 @@ def test_intersection_report_shows_trips_and_early_terminations_with_the_scripte
         return {"target_speed": 10.0, "avg_return": 160.0, "avg_trips_completed": 26.2,
                 "avg_early_terminations": 2.4, "episode_returns": []}  # fmt: skip
 
-    monkeypatch.setattr(evaluate_mod, "evaluate_yardstick", fake_driver)
+    monkeypatch.setattr(report_mod, "evaluate_yardstick", fake_driver)
     runs = [
         fake_run(tmp_path / "dsac", "intersection", "dsac", "quick", [100.0, 110.0, 120.0, 130.0]),
         fake_run(tmp_path / "xdsac", "intersection", "xdsac", "quick", [140.0, 150.0, 160.0, 170.0]),

@@ -6,9 +6,7 @@ import json
 import pytest
 
 from xrl_jax import resources
-from xrl_jax.train import resolve_config
-from xrl_jax.train.loop import CHECKPOINT_TIME_SHARE, RunClock, cost_lines
-from xrl_jax.train.run_folder import (
+from xrl_jax.runs.folder import (
     RunFolderError,
     RunLock,
     check_history,
@@ -18,6 +16,8 @@ from xrl_jax.train.run_folder import (
     remove_leftovers,
     truncate_lines,
 )
+from xrl_jax.train import resolve_config
+from xrl_jax.train.loop import CHECKPOINT_TIME_SHARE, RunClock, cost_lines
 
 
 def test_no_data_and_not_finite_are_different_values():

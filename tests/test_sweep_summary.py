@@ -9,17 +9,10 @@ import pytest
 
 from xrl_jax import stats
 from xrl_jax.config import parse_sweep, resolve_config
-from xrl_jax.evaluate import (
-    format_curve,
-    format_table,
-    format_training_tracks,
-    learning_curve,
-    plot_learning_curve,
-    plot_sweep,
-    summarize_run,
-    sweep_x_scale,
-)
-from xrl_jax.train.run_folder import member_fields, member_stem
+from xrl_jax.runs.folder import member_fields, member_stem
+from xrl_jax.runs.plots import plot_learning_curve, plot_sweep, sweep_x_scale
+from xrl_jax.runs.summary import learning_curve, summarize_run
+from xrl_jax.runs.tables import format_curve, format_table, format_training_tracks
 
 PNG = b"\x89PNG\r\n\x1a\n"
 KAPPAS = [-0.01, 0.0, 0.1]
@@ -131,7 +124,8 @@ def test_an_empty_sweep_folder_summarises_without_crashing(tmp_path):
 
 def _summary_before_sweeps(out, cfg):
     """summarize_run as it was before sweeps (commit 655a59d), the reference for plain runs."""
-    from xrl_jax.evaluate import _curve, aggregate_metrics, read_jsonl
+    from xrl_jax.runs.folder import read_rows as read_jsonl
+    from xrl_jax.runs.summary import _curve, aggregate_metrics
 
     evaluations = [
         {r["step"]: r for r in read_jsonl(out / "eval" / f"seed_{seed}.jsonl") if "step" in r}

@@ -24,7 +24,7 @@ DRIVE = np.array([0.0, 0.3, -1.0], np.float32)  # gentle throttle: an episode th
 
 @pytest.fixture(scope="module")
 def env_and_template():
-    from xrl_jax.train.tracks import cached_track_bank
+    from xrl_jax.tracks import cached_track_bank
 
     bank = cached_track_bank(1, 1)
     return envs.make("tracking", track=jax.tree.map(lambda leaf: leaf[0], bank))

@@ -197,7 +197,7 @@ def test_fresh_tracks_give_every_episode_a_new_track_from_the_seeds_own_stream(t
     Episodes are cut to 8 steps so that 4 chunks (8 episodes each per seed) need refills of a
     16-track feed."""
     from envs.track_generator import generate_track
-    from xrl_jax.train.tracks import make_envs
+    from xrl_jax.tracks import make_envs
 
     prepare_cache(tmp_path)
     cfg = resolve_config(
@@ -252,7 +252,7 @@ def test_fresh_tracks_give_every_episode_a_new_track_from_the_seeds_own_stream(t
 def test_quick_preset_learns_on_tracking(tmp_path):
     """Two seeds of XDSAC, quick preset (14 min on 2 CPU cores, measured): the final evaluation on the 100
     fixed tracks beats the first one (at 5k steps) clearly, for the IQM over seeds."""
-    from xrl_jax.evaluate import read_jsonl
+    from xrl_jax.runs.folder import read_rows as read_jsonl
 
     cfg = resolve_config("tracking", "xdsac", "quick", num_seeds=2)
     summary = T.train(cfg, tmp_path, progress=False, log=lambda *_: None)

@@ -26,7 +26,7 @@ from xrl_jax.distributions import (
     CategoricalMixture,
     SquashedGaussianMixture,
 )
-from xrl_jax.evaluate import evaluation_episode_keys, evaluation_step_key
+from xrl_jax.evaluation import evaluation_episode_keys, evaluation_step_key
 
 Policy = SquashedGaussianMixture | CategoricalMixture
 
@@ -134,7 +134,7 @@ class EpisodeRecord:
 def single_track_params(params, index: int):
     """Racing params whose bank holds only track ``index`` of ``params``' bank (evaluation episode ``index``).
 
-    This is how :func:`xrl_jax.evaluate.make_evaluate` gives episode i its fixed track.
+    This is how :func:`xrl_jax.evaluation.make_evaluate` gives episode i its fixed track.
     """
     bank_size = int(params.tracks.num_points.shape[0])
     if not 0 <= int(index) < bank_size:

@@ -40,7 +40,7 @@ DEFAULTS = {
 
 def _racing_observations(scenario: str, num_tracks: int, steps: int, seed: int) -> dict[str, Any]:
     from envs import hand_controller
-    from xrl_jax.train.tracks import cached_track_bank, racing_env
+    from xrl_jax.tracks import cached_track_bank, racing_env
 
     env, params = racing_env(scenario, cached_track_bank(1000 + seed, num_tracks))
     tables = getattr(params, "tables", None)

@@ -17,8 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from xrl_jax import evaluate as evaluate_mod
 from xrl_jax import stats
+from xrl_jax.evaluation import evaluate_yardstick
+from xrl_jax.runs.plots import format_step_axis, plot_sweep
+from xrl_jax.runs.summary import summarize_run, summary_metrics
+from xrl_jax.runs.tables import curve_label
 
 PAPER_RESULTS = Path(__file__).resolve().parents[1] / "docs" / "paper_results.json"
 BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
@@ -67,7 +70,7 @@ def read_run(folder: str | Path) -> Run:
         cfg = read_run_config(folder)
     except RunError as err:
         raise ReportError(str(err)) from None
-    return Run(folder, cfg, evaluate_mod.summarize_run(folder, cfg))
+    return Run(folder, cfg, summarize_run(folder, cfg))
 
 
 def paper_values() -> dict[tuple[str, str, str], dict]:
@@ -79,7 +82,7 @@ def paper_values() -> dict[tuple[str, str, str], dict]:
 def table_metrics(env: str) -> tuple[tuple[str, str], ...]:
     """The (key, label) pairs of ``env``'s table; the first two are its figure's (the paper's Fig. 5/6:
     return and early-termination rate; on the Intersection Fig. 7's trips and early terminations)."""
-    metrics = dict(evaluate_mod.summary_metrics(env))
+    metrics = dict(summary_metrics(env))
     if env == "intersection":
         keys = ("avg_trips_completed", "avg_early_terminations", "avg_return")
     else:
@@ -143,7 +146,7 @@ def controller_rows(
                          if r.cfg.env == env and not r.is_sweep}, key=str)  # fmt: skip
     rows, results = [], []
     for seed, episodes in track_sets:
-        result = evaluate_mod.evaluate_yardstick(env, seed, episodes, target_speed)
+        result = evaluate_yardstick(env, seed, episodes, target_speed)
         where = {"episodes": episodes} if multi else {"eval_track_seed": seed, "episodes": episodes}
         results.append({"env": env, **where, **result})
         seeds = f"{episodes} episodes" if multi else f"{episodes} tracks (seed {seed})"
@@ -263,9 +266,9 @@ def plot_env(runs: list[Run], env: str, path: Path, references: list[dict] | Non
             bars.axvline(reference[key], color="black", linestyle="--", linewidth=1, label=name)
             curves.axhline(reference[key], color="black", linestyle="--", linewidth=1, label=name)
         bars.set_title(f"{label} (IQM, 95 % CI)")
-        curves.set_title(evaluate_mod._curve_label(label))
+        curves.set_title(curve_label(label))
         curves.set_xlabel("environment steps per seed")
-        evaluate_mod.format_step_axis(curves)
+        format_step_axis(curves)
         curves.grid(alpha=0.3)
         bars.grid(alpha=0.3)
     axes[1][0].legend(fontsize="small")
@@ -303,9 +306,9 @@ def plot_pairs(runs: list[Run], env: str, path: Path, references: list[dict] | N
             for reference in references or []:
                 ax.axhline(reference[key], color="black", linestyle="--", linewidth=1,
                            label=yardstick_name(env, reference["target_speed"]))  # fmt: skip
-            ax.set_title(f"{evaluate_mod._curve_label(label)} (IQM, 95 % CI)")
+            ax.set_title(f"{curve_label(label)} (IQM, 95 % CI)")
             ax.set_xlabel("environment steps per seed")
-            evaluate_mod.format_step_axis(ax)
+            format_step_axis(ax)
             ax.grid(alpha=0.3)
             ax.legend(fontsize="small")
     figure.suptitle(f"{env}: each explainable agent against its baseline")
@@ -360,7 +363,7 @@ def write_report(
                 lines += [f"![{env}: pairs]({pairs.name})", ""]
         found = improvements(runs, env, early_fraction=early_fraction)
         all_improvements += found
-        labels = dict(evaluate_mod.summary_metrics(env))
+        labels = dict(summary_metrics(env))
         for item in found:
             interval = f"{item['estimate']:.2f} [{item['low']:.2f}, {item['high']:.2f}]"
             seeds = f"{item['seeds'][0]} vs {item['seeds'][1]} seeds"
@@ -372,7 +375,7 @@ def write_report(
             baseline = next((b for b in finished if b.cfg.algo == BASELINES.get(run.cfg.algo)), None)
             path = out / f"sweep_{run.folder.name}.png"
             if run.summary["sweep"]["points"] and any(p["aggregate"] for p in run.summary["sweep"]["points"]):
-                evaluate_mod.plot_sweep(run.summary, path, baseline.summary if baseline else None)
+                plot_sweep(run.summary, path, baseline.summary if baseline else None)
                 lines += ["", f"Sweep {run.label}: {run.status()}", "", f"![sweep]({path.name})"]
         lines.append("")
     (out / "improvement.json").write_text(json.dumps(all_improvements, indent=2) + "\n")

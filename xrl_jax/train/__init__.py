@@ -4,12 +4,12 @@ over seeds, driven by a host loop between chunks. Its configuration (:class:`Tra
 
 Modules, by what they hold:
 
-* :mod:`~xrl_jax.train.tracks`: the training and evaluation track banks, cached on disk;
 * :mod:`~xrl_jax.train.episodes`: the rolling window of finished episodes (rollout metrics);
 * :mod:`~xrl_jax.train.chunk`: the run state, the compiled chunk and its report (:func:`make_train`);
 * :mod:`~xrl_jax.train.memory`: bytes per seed and the seed groups that fit;
-* :mod:`~xrl_jax.train.run_folder`: the results folder (layout, crash-safe writes, lock, resume checks);
 * :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`).
+
+The track banks are :mod:`xrl_jax.tracks`'s, the results folder :mod:`xrl_jax.runs`'s.
 """
 
 from xrl_jax.config import (
@@ -20,11 +20,11 @@ from xrl_jax.config import (
     parse_overrides,
     resolve_config,
 )
+from xrl_jax.runs.folder import write_atomic
+from xrl_jax.tracks import cache_dir, cached_track_bank, make_envs, track_cache_path
 from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, make_train
 from xrl_jax.train.loop import DiskFullError, DivergenceError, train
 from xrl_jax.train.memory import MemoryPlanError, estimate_seed_bytes, plan_memory
-from xrl_jax.train.run_folder import write_atomic
-from xrl_jax.train.tracks import cache_dir, cached_track_bank, make_envs, track_cache_path
 
 __all__ = [
     "ENVS",

@@ -53,7 +53,9 @@ from jax.sharding import PartitionSpec as P
 from xrl_jax.agents import Agent, AgentState, HyperParams, make_agent, make_hparams
 from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_add_packed, buffer_init, buffer_sample
 from xrl_jax.config import HOST_ONLY_FIELDS, TrainConfig
+from xrl_jax.evaluation import make_evaluate, make_evaluate_multiagent
 from xrl_jax.sets import MEMBERS_AXIS
+from xrl_jax.tracks import make_envs
 from xrl_jax.train.episodes import (
     EARLY_TERMINATION_REWARD,
     EpisodeWindow,
@@ -61,7 +63,6 @@ from xrl_jax.train.episodes import (
     window_init,
     window_means,
 )
-from xrl_jax.train.tracks import make_envs
 
 
 @struct.dataclass
@@ -245,7 +246,6 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None, devices: l
     spread over ``devices`` (default: the first device only)."""
     from envs import track_feed
     from envs.core import vmap_env
-    from xrl_jax import evaluate as evaluate_mod
 
     env, params, eval_params = env_and_params if env_and_params is not None else make_envs(cfg)
     num_envs, batch, warmup = cfg.num_envs, cfg.batch_size, cfg.warmup_steps
@@ -503,9 +503,9 @@ def make_train(cfg: TrainConfig, env_and_params: tuple | None = None, devices: l
         return state, ChunkReport(metrics=metrics, has_data=has_data, health=health)
 
     if multi:
-        evaluate_one = evaluate_mod.make_evaluate_multiagent(env, eval_params, agent, cfg.eval_episodes)
+        evaluate_one = make_evaluate_multiagent(env, eval_params, agent, cfg.eval_episodes)
     else:
-        evaluate_one = evaluate_mod.make_evaluate(env, eval_params, agent, cfg.eval_episodes)
+        evaluate_one = make_evaluate(env, eval_params, agent, cfg.eval_episodes)
 
     def evaluate_seed(state: RunState):
         key, sub = jax.random.split(state.eval_key)

@@ -20,12 +20,10 @@ import numpy as np
 
 from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError
 from xrl_jax.config import HOST_ONLY_FIELDS, ConfigError, TrainConfig
+from xrl_jax.evaluation import summarize_episodes
 from xrl_jax.interrupts import RunInterrupted, StopController
 from xrl_jax.resources import backend_summary, disk_free_bytes, format_bytes, format_duration
-from xrl_jax.train import hosts
-from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, member_hparams, tree_all_finite
-from xrl_jax.train.memory import padded_members, plan_memory, tree_bytes
-from xrl_jax.train.run_folder import (
+from xrl_jax.runs.folder import (
     RunLock,
     append_lines,
     check_history,
@@ -38,6 +36,11 @@ from xrl_jax.train.run_folder import (
     truncate_lines,
     write_atomic,
 )
+from xrl_jax.runs.plots import plot_learning_curve, plot_sweep
+from xrl_jax.runs.summary import summarize_run
+from xrl_jax.train import hosts
+from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, member_hparams, tree_all_finite
+from xrl_jax.train.memory import padded_members, plan_memory, tree_bytes
 
 
 class DivergenceError(RuntimeError):
@@ -79,7 +82,7 @@ def _metric_lines(
 ) -> list[tuple[int, dict]]:
     """One metrics line per member (of ``rows``, the group's rows this process holds): ``null`` where
     an average has no data yet, non-finite values as the strings "nan"/"inf"/"-inf" (see
-    :func:`xrl_jax.train.run_folder.encode_metric`)."""
+    :func:`xrl_jax.runs.folder.encode_metric`)."""
     lines = []
     for row in rows:
         line = {"step": step, **member_fields(cfg, members[row])}
@@ -229,14 +232,14 @@ def train(
 ) -> dict[str, Any] | None:
     """Run (or continue) the whole experiment into ``out``; returns the summary.
 
-    Writes (``config.json`` is the caller's, see :func:`xrl_jax.evaluate.config_document`):
+    Writes (``config.json`` is the caller's, see :func:`xrl_jax.runs.provenance.config_document`):
     ``plan.json`` (memory plan and seed groups), per seed ``metrics/seed_<i>.jsonl`` (one line per
     chunk) and ``eval/seed_<i>.jsonl`` (one line per evaluation), per group ``checkpoints/group_<g>``
     (the newest two, verified on restore), ``timing.jsonl`` and at the end ``summary.json``. Lines
     written after the newest checkpoint are dropped on resume and recomputed, so a resumed run's
     files equal an uninterrupted run's.
 
-    The folder is locked for the duration (:class:`~xrl_jax.train.run_folder.RunLock`). Checkpoints are
+    The folder is locked for the duration (:class:`~xrl_jax.runs.folder.RunLock`). Checkpoints are
     written every ``checkpoint_interval`` steps and every ``checkpoint_minutes`` of wall time, never
     after a chunk in which a seed went non-finite: that raises :class:`DivergenceError` with the
     last good checkpoint kept. ``stop`` (installed by the CLI) turns SIGINT/SIGTERM into a stop at a
@@ -502,8 +505,6 @@ class _HostLoop:
         return state
 
     def _evaluate(self, state: RunState, members: list[int], step: int) -> RunState:
-        from xrl_jax import evaluate as evaluate_mod
-
         tic = time.perf_counter()
         eval_keys, episodes = self.trainer.evaluate(state)
         state = state.replace(eval_key=eval_keys)
@@ -513,7 +514,7 @@ class _HostLoop:
         for row in self.rows:
             per_episode = jax.tree.map(lambda x, r=row: np.asarray(x[r]), episodes)
             fields = member_fields(self.cfg, members[row])
-            line = {"step": step, **fields, **evaluate_mod.summarize_episodes(per_episode)}
+            line = {"step": step, **fields, **summarize_episodes(per_episode)}
             append_lines(self._files(members[row])[1], [line])
         return state
 
@@ -543,13 +544,11 @@ class _HostLoop:
             self.stop.keep(self._kept(step, group_index))
 
     def _summarise(self) -> dict[str, Any]:
-        from xrl_jax import evaluate as evaluate_mod
-
         timing = self.timing
         timing["wall_s"] = time.perf_counter() - self.start_time
         timing["env_steps_per_s"] = timing["env_steps"] / timing["train_s"] if timing["train_s"] > 0 else None
         hosts.sync("xrl-jax: all records written")  # every process's members are in their files
-        summary = evaluate_mod.summarize_run(self.out, self.cfg)
+        summary = summarize_run(self.out, self.cfg)
         summary["timing_this_session"] = timing
         summary["memory_plan"] = {k: v for k, v in self.plan.items() if k != "groups"} | {
             "groups": len(self.groups),
@@ -558,9 +557,9 @@ class _HostLoop:
         if hosts.is_primary():
             write_atomic(self.paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
             if summary["curve"] or summary.get("sweep"):
-                evaluate_mod.plot_learning_curve(summary, self.paths["curve"])
+                plot_learning_curve(summary, self.paths["curve"])
             if summary.get("sweep"):
-                evaluate_mod.plot_sweep(summary, self.paths["sweep"])
+                plot_sweep(summary, self.paths["sweep"])
         return summary
 
 

@@ -1,5 +1,6 @@
 """Environments for a run: the training track bank and the fixed evaluation tracks, cached on disk
-(generating even a few tracks compiles for ~30 s on CPU)."""
+(generating even a few tracks compiles for ~30 s on CPU). Below the evaluation and the trainer, which
+both drive on these banks."""
 
 from __future__ import annotations
 
@@ -12,6 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import envs
+import envs.track
+import envs.track_generator
+from envs.racing import with_bank
+from envs.track import Track
+from envs.track_generator import make_track_bank
 from xrl_jax.config import TrainConfig
 
 
@@ -22,9 +29,6 @@ def cache_dir() -> Path:
 
 def _generator_fingerprint() -> str:
     """A hash of the generator's sources: the track type and constants, and the generator itself."""
-    import envs.track
-    import envs.track_generator
-
     digest = hashlib.sha256()
     for module in (envs.track, envs.track_generator):
         digest.update(Path(module.__file__).read_bytes())
@@ -44,9 +48,6 @@ def cached_track_bank(seed: int, size: int):
     The file name carries a hash of the generator's source and the backend, so a changed generator
     never serves stale tracks. Writes are atomic (temporary file + rename).
     """
-    from envs.track import Track
-    from envs.track_generator import make_track_bank
-
     path = track_cache_path(seed, size)
     fields = [f.name for f in dataclasses.fields(Track)]
     if path.exists():
@@ -71,8 +72,6 @@ def make_envs(cfg: TrainConfig):
     fixed bank (``train_tracks`` > 0) or, with fresh tracks, params whose one-track bank is only a
     template for each seed's :class:`envs.track_feed.TrackFeed`. Intersection: curriculum for training,
     8 vehicles for evaluation (docs/carenv-intersection.md §8.8)."""
-    import envs
-
     if cfg.multi_agent:
         env, params = envs.make(cfg.env_name)
         return env, params, params.replace(max_vehicles=8)
@@ -88,9 +87,6 @@ def make_envs(cfg: TrainConfig):
 def racing_env(env_name: str, *banks):
     """``(env, params_1, ..., params_n)``: racing scenario ``env_name`` and, per track bank, params
     that hold it with its ring tables and reset cache (each bank prepared in one compiled call)."""
-    import envs
-    from envs.racing import with_bank
-
     # A user track: envs.make generates nothing.
     env, params = envs.make(env_name, track=jax.tree.map(lambda leaf: leaf[0], banks[0]))
     attach = jax.jit(lambda params, bank: env.prepare(with_bank(params, bank)))

@@ -1,5 +1,7 @@
-"""The results folder of a run: its layout, crash-safe writes, the writer's lock, and the checks a
-resume makes before it continues what is there.
+"""The results folder of a run, its one owner: the only module that spells the folder's file names.
+Its layout, crash-safe writes, the one JSON-lines reader, the readers of ``config.json`` and
+``plan.json`` (one-line errors), the writer's lock, and the checks a resume makes before it
+continues what is there.
 
 Every file is written so that a crash at any moment loses at most the line being written: JSON
 lines are appended and forced to disk, whole documents are replaced atomically. One process writes
@@ -21,6 +23,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from xrl_jax.config import TrainConfig
+
 LOCK_NAME = ".lock"
 TEMP_MARK = ".tmp"  # ``.<name>.tmp<pid>``: what write_atomic leaves behind when it is killed mid-write
 
@@ -41,6 +45,21 @@ def run_paths(out: Path) -> dict[str, Path]:
         "sweep": out / "sweep.png",
         "timing": out / "timing.jsonl",
     }
+
+
+def metrics_file(out: Path, stem: str) -> Path:
+    """Member ``stem``'s training metrics, one JSON line every ``log_interval`` steps."""
+    return Path(out) / "metrics" / f"{stem}.jsonl"
+
+
+def eval_file(out: Path, stem: str) -> Path:
+    """Member ``stem``'s evaluations, one JSON line every ``eval_interval`` steps."""
+    return Path(out) / "eval" / f"{stem}.jsonl"
+
+
+def checkpoint_dir(out: Path, group: int) -> Path:
+    """The checkpoints of seed group ``group`` (each group is restored as a whole)."""
+    return Path(out) / "checkpoints" / f"group_{group}"
 
 
 def member_stem(cfg, member: int) -> str:
@@ -110,6 +129,49 @@ def read_rows(path: Path) -> list[dict]:
         if isinstance(row, dict):
             rows.append(row)
     return rows
+
+
+def read_document(path: Path, what: str) -> dict:
+    """A JSON document of the folder, or :class:`RunFolderError` in one line (missing, unreadable,
+    or not a JSON object)."""
+    try:
+        document = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise RunFolderError(f"{path.parent} has no {path.name} ({what})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise RunFolderError(f"{path} is unreadable ({what}): {err}") from None
+    if not isinstance(document, dict):
+        raise RunFolderError(f"{path} is not a JSON object ({what})")
+    return document
+
+
+def read_run_config(folder: str | Path):
+    """The full :class:`~xrl_jax.config.TrainConfig` of a results folder (its ``config.json``)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise RunFolderError(f"results folder {folder} does not exist")
+    path = run_paths(folder)["config"]
+    if not path.is_file():
+        raise RunFolderError(f"{folder} is not a results folder (no config.json)")
+    document = read_document(path, "the run's configuration")
+    try:
+        return TrainConfig.from_dict(document["config"])
+    except (ValueError, KeyError, TypeError) as err:
+        raise RunFolderError(f"{path} is unreadable or from another version ({err})") from None
+
+
+def read_checkpoint_plan(folder: str | Path, num_members: int) -> tuple[list[list[int]], int]:
+    """The member groups of the run's checkpoints and the device count they were padded to
+    (``plan.json``; one group on one device when it is missing, as in runs older than the plan)."""
+    path = run_paths(Path(folder))["plan"]
+    if not path.is_file():
+        return [list(range(num_members))], 1
+    plan = read_document(path, "the run's seed groups")
+    try:
+        groups = [[int(m) for m in group] for group in plan["groups"]]
+        return groups, int(plan.get("devices", 1))
+    except (KeyError, TypeError, ValueError) as err:
+        raise RunFolderError(f"{path} does not describe the seed groups ({err!r})") from None
 
 
 def truncate_lines(path: Path, max_step: int) -> None:

@@ -1,0 +1,149 @@
+"""Evaluation of the racing scenarios on fixed tracks (docs/algorithms.md §6.1).
+
+Protocol: ``n`` episodes, episode ``i`` always on track ``i`` of a fixed evaluation bank, so every
+evaluation of every seed sees the same tracks. Each agent acts in its evaluation mode (§3.8: SAC,
+DSAC, XDSAC greedy; XSAC stochastic, from a separate key stream). All episodes run in parallel
+(a batch of envs without auto-reset) until each has terminated or been truncated; finished
+episodes are frozen by masks. Per episode: return, length, how it ended; early termination (ETR)
+= terminated with a last reward below −0.5, success (SR) = terminated otherwise.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+EARLY_TERMINATION_REWARD = -0.5
+EPISODE_FIELDS = ("return", "length", "terminated", "truncated", "last_reward", "track_velocity", "cones_hit")
+
+
+def make_evaluate(env, eval_params, agent, num_episodes: int, mode: str = "eval"):
+    """``evaluate(key, agent_state) -> per-episode arrays`` (each ``(num_episodes,)``), jittable.
+
+    ``eval_params`` holds a bank of at least ``num_episodes`` tracks; episode ``i`` uses track ``i``.
+    ``mode`` is the agent's acting mode: "eval" (the reference's, §3.8) or "deterministic" (greedy
+    for every agent, XSAC included: a diagnostic, not the paper's protocol).
+    """
+    if mode not in ("eval", "deterministic"):
+        raise ValueError(f"an evaluation acts in mode 'eval' or 'deterministic', not {mode!r}")
+
+    def policy(key, agent_state, obs, env_states, per_episode):
+        del env_states, per_episode  # an agent sees only its observation
+        return agent.act(key, agent_state, obs, mode)
+
+    return make_evaluate_policy(env, eval_params, policy, num_episodes)
+
+
+def make_evaluate_policy(env, eval_params, policy, num_episodes: int):
+    """:func:`make_evaluate` for any ``policy(key, policy_state, obs, env_states, per_episode)``
+    returning the batch of actions; ``evaluate(key, policy_state)``.
+
+    A policy that reads the env state (the hand controller reads the centre line) gets it batched
+    over episodes, with ``per_episode(fn)``: ``fn(env_state, params)`` vmapped over the episodes,
+    each with its own track's params.
+    """
+    bank_size = int(eval_params.tracks.num_points.shape[0])
+    if bank_size < num_episodes:
+        raise ValueError(f"the evaluation bank has {bank_size} tracks, fewer than {num_episodes} episodes")
+    tracks = jax.tree.map(lambda leaf: leaf[:num_episodes, None], eval_params.tracks)
+    tables = getattr(eval_params, "tables", None)
+    tables = None if tables is None else jax.tree.map(lambda leaf: leaf[:num_episodes, None], tables)
+    max_steps = int(eval_params.max_steps)
+
+    def own_params(track, table):
+        changes = {"tracks": track} if table is None else {"tracks": track, "tables": table}
+        return eval_params.replace(**changes)
+
+    def reset_one(key, track, table):
+        return env.reset_env(key, own_params(track, table))
+
+    def step_one(key, state, action, track, table):
+        return env.step_env(key, state, action, own_params(track, table))
+
+    table_axis = 0 if tables is not None else None
+    reset_all = jax.vmap(reset_one, in_axes=(0, 0, table_axis))
+    step_all = jax.vmap(step_one, in_axes=(0, 0, 0, 0, table_axis))
+
+    def per_episode(fn):
+        def on_all(env_states):
+            one = lambda state, track, table: fn(state, own_params(track, table))
+            return jax.vmap(one, in_axes=(0, 0, table_axis))(env_states, tracks, tables)
+
+        return on_all
+
+    def evaluate(key, policy_state):
+        reset_key, key = jax.random.split(key)
+        obs, env_state = reset_all(jax.random.split(reset_key, num_episodes), tracks, tables)
+        float_dtype = jnp.result_type(float)
+        zeros = jnp.zeros((num_episodes,), float_dtype)
+        false = jnp.zeros((num_episodes,), bool)
+        record = {
+            "return": zeros,
+            "length": jnp.zeros((num_episodes,), jnp.int32),
+            "terminated": false,
+            "truncated": false,
+            "last_reward": zeros,
+            "track_velocity": zeros,
+            "cones_hit": jnp.zeros((num_episodes,), jnp.int32),
+        }
+
+        def running(carry):
+            # At most max_steps + 1 rounds, whatever the policy outputs. The env truncates every episode
+            # at max_steps (and terminates it at once on a NaN action), so the count never cuts one short.
+            _, _, done, _, _, t = carry
+            return ~jnp.all(done) & (t < max_steps + 1)
+
+        def body(carry):
+            obs, env_state, done, record, key, t = carry
+            key, act_key, step_key = jax.random.split(key, 3)
+            action = policy(act_key, policy_state, obs, env_state, per_episode)
+            obs, env_state, reward, terminated, truncated, info = step_all(
+                jax.random.split(step_key, num_episodes), env_state, action, tracks, tables
+            )
+            live = ~done
+
+            def keep(new, old):
+                return jnp.where(live, new, old).astype(old.dtype)
+
+            record = {
+                "return": keep(record["return"] + reward, record["return"]),
+                "length": keep(record["length"] + 1, record["length"]),
+                "terminated": keep(terminated, record["terminated"]),
+                "truncated": keep(truncated, record["truncated"]),
+                "last_reward": keep(reward, record["last_reward"]),
+                "track_velocity": keep(info["avg_track_velocity"], record["track_velocity"]),
+                "cones_hit": keep(info["cones_hit"], record["cones_hit"]),
+            }
+            return obs, env_state, done | terminated | truncated, record, key, t + 1
+
+        carry = (obs, env_state, false, record, key, jnp.zeros((), jnp.int32))
+        return jax.lax.while_loop(running, body, carry)[3]
+
+    return evaluate
+
+
+def summarize_episodes(episodes: dict[str, Any]) -> dict[str, Any]:
+    """The §6.1 averages of one seed's evaluation, plus the per-episode returns (host side)."""
+    if "trips_completed" in episodes:  # multi-agent: the env's metrics (docs/carenv-intersection.md §8.8)
+        out = {f"avg_{k}": float(np.mean(v)) for k, v in episodes.items() if k != "return"}
+        returns = np.asarray(episodes["return"], np.float64)
+        return {
+            "avg_return": float(returns.mean()),
+            **out,
+            "episode_returns": [round(float(r), 6) for r in returns],
+        }
+    returns = np.asarray(episodes["return"], np.float64)
+    terminated = np.asarray(episodes["terminated"], bool)
+    early = terminated & (np.asarray(episodes["last_reward"]) < EARLY_TERMINATION_REWARD)
+    return {
+        "avg_return": float(returns.mean()),
+        "avg_episode_length": float(np.mean(episodes["length"])),
+        "avg_etr": float(early.mean()),
+        "avg_sr": float((terminated & ~early).mean()),
+        "avg_track_velocity": float(np.mean(episodes["track_velocity"])),
+        "avg_cones_hit": float(np.mean(episodes["cones_hit"])),
+        "episode_returns": [round(float(r), 6) for r in returns],
+    }
