@@ -14,13 +14,20 @@ from xrl_jax.config.train import train_field_names
 
 
 def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, str]:
-    """``["key=value", ...]`` -> dict; a malformed item raises :class:`ConfigError`."""
+    """``["key=value", ...]`` -> dict; a malformed item raises :class:`ConfigError`, and so does a
+    setting given twice (``gamma`` and ``agent.gamma`` name the same field): the last value winning
+    would silently drop the other one."""
     out: dict[str, str] = {}
+    given: dict[str, str] = {}  # field name -> the item that set it
     for item in items:
         key, sep, value = item.partition("=")
         key = key.strip()
         if not sep or not key or not value.strip():
             raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
+        name = key.removeprefix("agent.")
+        if name in given:
+            raise ConfigError(f"--set {name} is given twice ({given[name]!r} and {item!r}); give it once")
+        given[name] = item
         out[key] = value.strip()
     return out
 
