@@ -27,7 +27,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cli_args import OneLineParser, positive_int
 
-from xrl_jax.config import ALGOS, ENVS, PRESETS
+from xrl_jax.config import ALGOS, ENVS, PRESETS, ConfigError, parse_overrides
 
 KAPPAS = "-0.01,-0.001,0,0.001,0.01,0.1"
 # Device throughput for the estimate, in FLOP/s the update achieves. This CPU: bench.py update measured
@@ -146,9 +146,25 @@ def fail(message: str) -> int:
     return 2
 
 
+def check_sets(runs: list[PlannedRun], sets: list[str]) -> str | None:
+    """Why the ``--set`` items cannot reach the runs (one malformed, a setting given twice, or one that
+    a run sets itself), or None: checked before the first run starts rather than when a later run
+    refuses them and ends the campaign halfway."""
+    try:
+        parse_overrides(sets)
+    except ConfigError as err:
+        return str(err)
+    for planned in runs:
+        try:
+            parse_overrides([*planned.sets, *sets])
+        except ConfigError as err:
+            return f"{planned.name} sets this itself: {err}"
+    return None
+
+
 def plan(runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation: float) -> list[dict]:
     """One row per run: its status, members, memory and groups on this machine, FLOPs and device-hours."""
-    from xrl_jax.config import parse_overrides, parse_sweep, resolve_config
+    from xrl_jax.config import parse_sweep, resolve_config
     from xrl_jax.occupancy import load_occupancy, update_cost
     from xrl_jax.resources import format_bytes
     from xrl_jax.train import get_trainer, plan_memory
@@ -227,6 +243,9 @@ def main(argv: list[str] | None = None) -> int:
             return fail(
                 f"--only {' '.join(args.only)} matches no run; runs: {', '.join(r.name for r in campaign())}"
             )
+    problem = check_sets(runs, args.set)
+    if problem:
+        return fail(problem)
     out = Path(args.out)
     if args.dry_run:
         print_plan(plan(runs, out, args.preset, args.seeds, args.utilisation), args.utilisation)

@@ -188,6 +188,7 @@ def test_evaluate_cli_refuses_what_it_cannot_measure(evaluate_cli, smoke_run, ca
         (["--set", "learning_rate=1"], ["unknown setting 'learning_rate'", "actor_lr"]),
         (["--set", "gamma=abc"], ["cannot parse 'abc'"]),
         (["--set", "tau=0"], ["tau must lie in (0, 1]"]),
+        (["--set", "gamma=0.9", "--set", "agent.gamma=0.8"], ["--set gamma is given twice"]),
     ],
 )
 def test_bad_input_fails_at_once_with_one_line(run, capsys, tmp_path, args, fragments):

@@ -10,8 +10,10 @@ from xrl_jax.config import (
     MAX_VEHICLES,
     PRESETS,
     AgentConfig,
+    ConfigError,
     TrainConfig,
     apply_overrides,
+    parse_overrides,
     preset,
     resolve_config,
 )
@@ -149,6 +151,20 @@ def test_overrides_from_text():
         apply_overrides(cfg, {"lr": "1"})
     with pytest.raises(ValueError, match="actor_lr must be positive"):
         apply_overrides(cfg, {"actor_lr": "-1"})
+
+
+def test_a_setting_given_twice_is_refused_rather_than_the_last_value_winning():
+    assert parse_overrides(["gamma=0.9", "agent.kappa=0.1"]) == {"gamma": "0.9", "agent.kappa": "0.1"}
+    for items in (
+        ["gamma=0.9", "gamma=0.8"],
+        ["gamma=0.9", "agent.gamma=0.9"],
+        ["agent.gamma=1", " gamma =1"],
+    ):
+        with pytest.raises(ConfigError, match="--set gamma is given twice") as info:
+            parse_overrides(items)
+        assert repr(items[0]) in str(info.value) and "\n" not in str(info.value)
+    with pytest.raises(ConfigError, match="--set num_envs is given twice"):
+        parse_overrides(["num_envs=2", "batch_size=16", "num_envs=4"])
 
 
 def test_configs_are_frozen_and_hashable():

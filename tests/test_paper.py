@@ -66,6 +66,13 @@ def test_bad_input_fails_in_one_line(paper, capsys, tmp_path):
     one_line_error(status, err, "matches no run")
     status, _, err = call(paper, capsys, "--out", str(tmp_path), "--utilisation", "0")
     one_line_error(status, err, "--utilisation must be in (0, 1]")
+    # A --set repeated, or one that a run of the campaign sets itself, is refused before anything runs.
+    out = tmp_path / "campaign"
+    status, _, err = call(paper, capsys, "--out", str(out), "--set", "gamma=0.9", "--set", "agent.gamma=0.8")
+    one_line_error(status, err, "--set gamma is given twice", "'gamma=0.9'", "'agent.gamma=0.8'")
+    status, _, err = call(paper, capsys, "--out", str(out), "--set", "weight_depth=2")
+    one_line_error(status, err, "country_road-xsac-weights1 sets this itself", "'weight_depth=1'")
+    assert not out.exists()
 
 
 @pytest.mark.slow
