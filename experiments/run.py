@@ -276,8 +276,8 @@ def _read_baseline(args, cfg) -> tuple[dict | None, str | None]:
 
 
 def _main(args, argv, stop) -> int:
-    from xrl_jax.runs.folder import RunFolderError, RunLock, holds_results
-    from xrl_jax.train import ConfigError, TrainConfig
+    from xrl_jax.runs.folder import RunFolderError, holds_results, read_run_config
+    from xrl_jax.train import ConfigError
 
     given_any = any(
         v is not None
@@ -293,13 +293,10 @@ def _main(args, argv, stop) -> int:
             if args.out is not None:
                 return fail("--out and --resume exclude each other (a resumed run writes into DIR)")
             out = Path(args.resume)
-            config_path = out / "config.json"
-            if not config_path.is_file():
-                return fail(f"--resume {out}: not a results folder (no config.json)")
             try:
-                stored = TrainConfig.from_dict(json.loads(config_path.read_text())["config"])
-            except (ValueError, KeyError, TypeError) as err:
-                return fail(f"--resume {out}: config.json is unreadable or from another version ({err})")
+                stored = read_run_config(out)
+            except RunFolderError as err:
+                return fail(f"--resume {out}: {err}")
             if given_any:
                 diffs = _resume_mismatches(args, stored)
                 if diffs:
@@ -333,17 +330,14 @@ def _main(args, argv, stop) -> int:
                 probe.unlink()
             except OSError as err:
                 return fail(f"cannot write the results folder --out {out}: {err.strerror or err}")
-        lock = RunLock(out, jax.process_index()).acquire()
     except (ConfigError, RunFolderError) as err:
         return fail(str(err))
-    try:
-        return _train(args, argv, cfg, out, stop, baseline)
-    finally:
-        lock.release()
+    return _train(args, argv, cfg, out, stop, baseline)
 
 
 def _train(args, argv, cfg, out: Path, stop, baseline: dict | None) -> int:
-    """Write the run's config (a new run) and train; every failure ends in one line and a status.
+    """Train (a new run's config.json is written by the trainer, under the folder's lock); every
+    failure ends in one line and a status.
     ``baseline``: the --baseline run's summary, drawn into a sweep's figure."""
     from xrl_jax.checkpoint import NoGoodCheckpointError
     from xrl_jax.interrupts import RunInterrupted, exit_status
@@ -352,15 +346,13 @@ def _train(args, argv, cfg, out: Path, stop, baseline: dict | None) -> int:
 
     enable_compilation_cache()
     from xrl_jax import train as train_mod
-    from xrl_jax.runs import config_document, format_curve, format_table, plot_sweep
+    from xrl_jax.runs import format_curve, format_table, plot_sweep
     from xrl_jax.train import hosts
 
     primary = hosts.is_primary()  # process 0 talks for the job; the others train quietly
     quiet = args.quiet or not primary
     log = (lambda *a, **k: None) if quiet else (lambda msg: print(msg, file=sys.stderr))
-    if args.resume is None and primary:
-        document = config_document(cfg, [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)])
-        train_mod.write_atomic(out / "config.json", json.dumps(document, indent=2, sort_keys=True) + "\n")
+    command = [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)]  # into config.json
     resume_command = f"python experiments/run.py --resume {out}"
     stop.resume_hint = resume_command  # from now on the folder can be resumed
     points = f" x {cfg.num_points} sweep points" if cfg.num_points > 1 else ""
@@ -370,7 +362,7 @@ def _train(args, argv, cfg, out: Path, stop, baseline: dict | None) -> int:
     )
     try:
         summary = train_mod.train(
-            cfg, out, resume=args.resume is not None, progress=not quiet, log=log, stop=stop
+            cfg, out, resume=args.resume is not None, progress=not quiet, log=log, stop=stop, command=command
         )
     except (MemoryPlanError, ConfigError, RunFolderError) as err:
         return fail(str(err))

@@ -17,7 +17,7 @@ from xrl_jax.runs.folder import (
     truncate_lines,
 )
 from xrl_jax.train import resolve_config
-from xrl_jax.train.loop import CHECKPOINT_TIME_SHARE, RunClock, cost_lines
+from xrl_jax.train.clock import CHECKPOINT_TIME_SHARE, RunClock, cost_lines
 
 
 def test_no_data_and_not_finite_are_different_values():
@@ -27,9 +27,12 @@ def test_no_data_and_not_finite_are_different_values():
     assert json.loads(json.dumps({"x": encode_metric(float("nan"))})) == {"x": "nan"}  # strict JSON
 
 
-def test_the_lock_is_exclusive_and_reentrant_within_a_process(tmp_path):
-    with RunLock(tmp_path), RunLock(tmp_path):  # the CLI holds it, then the trainer takes it again
+def test_the_lock_is_exclusive_even_within_a_process(tmp_path):
+    """The trainer takes the folder's lock once; a second taker, here or elsewhere, gets one line."""
+    with RunLock(tmp_path):
         assert "process" in (tmp_path / ".lock").read_text()
+        with pytest.raises(RunFolderError, match=r"^results folder .* is in use by process \d+ on "):
+            RunLock(tmp_path).acquire()
     # released: another open file description can take it
     import fcntl
 

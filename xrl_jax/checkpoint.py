@@ -80,6 +80,7 @@ class Checkpointer:
             max_to_keep=int(max_to_keep), create=True, enable_async_checkpointing=False
         )
         self._manager = ocp.CheckpointManager(self.directory, options=options)
+        self.unverified_steps: list[int] = []  # steps restored without a digest manifest
 
     def save(self, step: int, state: Any, metadata: dict) -> None:
         """Write ``state`` and the JSON-serialisable ``metadata`` as checkpoint ``step`` (an int),
@@ -167,13 +168,16 @@ class Checkpointer:
         abstract_state: Any,
         check: Callable[[Any, dict], str | None] | None = None,
         log: Callable[[str], None] = print,
+        set_aside: bool = True,
     ) -> tuple[Any, dict]:
         """``(state, metadata)`` of the newest checkpoint that reads, matches its digests and passes
         ``check(state, metadata)`` (which returns None, or a one-line reason to reject it).
 
-        Each rejected checkpoint is reported through ``log`` in one line and moved aside (to
-        ``<directory>.rejected/<step>``), so that it is never restored and a later save of the same
-        step is not blocked. Raises :class:`NoGoodCheckpointError` when none is good.
+        Each rejected checkpoint is reported through ``log`` in one line and, with ``set_aside`` (the
+        run's writer; never a reader of a folder), moved aside (to ``<directory>.rejected/<step>``),
+        so that it is never restored and a later save of the same step is not blocked. A checkpoint
+        without a digest manifest is restored unverified and its step added to
+        ``unverified_steps``. Raises :class:`NoGoodCheckpointError` when none is good.
         """
         steps = self.all_steps()
         if not steps:
@@ -182,6 +186,7 @@ class Checkpointer:
         for position, step in enumerate(steps):
             try:
                 if not self.verify_files(step):
+                    self.unverified_steps.append(step)
                     log(f"checkpoint {self.directory.name}/{step} has no file digests (written by an older "
                         "version or cut short after its commit): restored unverified")  # fmt: skip
                 state, meta = self._read(abstract_state, step)
@@ -193,7 +198,8 @@ class Checkpointer:
                 older = steps[position + 1] if position + 1 < len(steps) else None
                 fallback = f"falling back to step {older}" if older is not None else "no older checkpoint"
                 log(f"checkpoint {self.directory.name}/{step} is damaged ({err}); {fallback}")
-                self._set_aside(step)
+                if set_aside:
+                    self._set_aside(step)
                 continue
             return state, meta
         raise NoGoodCheckpointError(f"no usable checkpoint in {self.directory} ({'; '.join(reasons)})")

@@ -19,7 +19,7 @@ import os
 import socket
 import time
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
@@ -212,23 +212,17 @@ class RunLock:
 
     ``flock`` is tied to the open file: the kernel drops it when the process exits or is killed, so
     a stale lock file (a holder that died) is recognised by simply being lockable again. The file
-    records who holds it, for the message the second writer gets.
+    records who holds it, for the message the second writer gets. The trainer takes it once, for the
+    whole run; a second lock on the folder, even in the same process, is refused.
     """
-
-    _held: ClassVar[dict[Path, int]] = {}  # lock files this process holds, with their nesting depth
 
     def __init__(self, folder: str | Path, process: int = 0):
         # The processes of a multi-host run share the folder; each holds a lock of its own.
         name = LOCK_NAME if process == 0 else f"{LOCK_NAME}.process_{process}"
         self.path = (Path(folder) / name).absolute()
         self._file = None
-        self._nested = False
 
     def acquire(self) -> RunLock:
-        if self.path in RunLock._held:  # this process already holds it (the CLI, then the trainer)
-            RunLock._held[self.path] += 1
-            self._nested = True
-            return self
         handle = open(self.path, "a+")  # noqa: SIM115 - held open for the lock's lifetime
         try:
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -248,15 +242,10 @@ class RunLock:
         handle.write(f"process {os.getpid()} on {socket.gethostname()} (since {started})\n")
         handle.flush()
         self._file = handle
-        RunLock._held[self.path] = 1
         return self
 
     def release(self) -> None:
-        if self._nested:
-            RunLock._held[self.path] -= 1
-            self._nested = False
-        elif self._file is not None:
-            RunLock._held.pop(self.path, None)
+        if self._file is not None:
             self._file.close()  # closing the descriptor releases the flock
             self._file = None
 

@@ -7,7 +7,6 @@ records of the members its devices hold."""
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import signal
 import sys
@@ -18,29 +17,33 @@ from typing import Any
 import jax
 import numpy as np
 
-from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError
-from xrl_jax.config import HOST_ONLY_FIELDS, ConfigError, TrainConfig
+from xrl_jax.checkpoint import Checkpointer
+from xrl_jax.config import ConfigError, TrainConfig
 from xrl_jax.evaluation import summarize_episodes
 from xrl_jax.interrupts import RunInterrupted, StopController
-from xrl_jax.resources import backend_summary, disk_free_bytes, format_bytes, format_duration
+from xrl_jax.resources import backend_summary, disk_free_bytes, format_bytes
 from xrl_jax.runs.folder import (
     RunLock,
     append_lines,
     check_history,
-    encode_metric,
     is_disk_full,
     member_fields,
     member_stem,
+    read_checkpoint_plan,
     remove_leftovers,
     run_paths,
     truncate_lines,
     write_atomic,
 )
 from xrl_jax.runs.plots import plot_learning_curve, plot_sweep
+from xrl_jax.runs.provenance import config_document
 from xrl_jax.runs.summary import summarize_run
 from xrl_jax.train import hosts
-from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, member_hparams, tree_all_finite
+from xrl_jax.train.chunk import RunState, Trainer, get_trainer, member_hparams
+from xrl_jax.train.clock import RunClock, cost_lines
 from xrl_jax.train.memory import padded_members, plan_memory, tree_bytes
+from xrl_jax.train.records import divergence_message, expected_rows, metric_lines
+from xrl_jax.train.restore import config_fingerprint, restore_group
 
 
 class DivergenceError(RuntimeError):
@@ -52,21 +55,6 @@ class DiskFullError(RuntimeError):
     """The disk filled up while the run wrote its results; the last committed checkpoint is intact."""
 
 
-CHECKPOINT_TIME_SHARE = 0.02  # time-based checkpoints never take more than this share of the run
-LONG_RUN_S = 86_400.0  # estimates above a day come with a warning and the faster alternatives
-
-
-def config_fingerprint(cfg: TrainConfig) -> str:
-    """A hash of every setting that shapes the run's results (not the host-only settings); stored
-    with each checkpoint so that a resume never continues another configuration's state."""
-    fields = cfg.to_dict()
-    for host_only in HOST_ONLY_FIELDS:
-        fields.pop(host_only)
-    if not fields["sweep"]:  # a plain run hashes as before sweeps existed
-        fields.pop("sweep")
-    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
-
-
 def _progress_bar(total: int, initial: int, enabled: bool):
     if not enabled:
         return None
@@ -75,147 +63,6 @@ def _progress_bar(total: int, initial: int, enabled: bool):
     return tqdm(
         total=total, initial=initial, unit="step", unit_scale=True, dynamic_ncols=True, file=sys.stderr
     )
-
-
-def _metric_lines(
-    cfg: TrainConfig, step: int, members: list[int], rows: list[int], report: ChunkReport
-) -> list[tuple[int, dict]]:
-    """One metrics line per member (of ``rows``, the group's rows this process holds): ``null`` where
-    an average has no data yet, non-finite values as the strings "nan"/"inf"/"-inf" (see
-    :func:`xrl_jax.runs.folder.encode_metric`)."""
-    lines = []
-    for row in rows:
-        line = {"step": step, **member_fields(cfg, members[row])}
-        for name, values in report.metrics.items():
-            present = report.has_data.get(name)
-            line[name] = encode_metric(values[row]) if present is None or present[row] else None
-        lines.append((members[row], line))
-    return lines
-
-
-def _first_nonfinite_leaf(tree) -> str:
-    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
-        leaf = np.asarray(leaf)
-        if np.issubdtype(leaf.dtype, np.floating) and not np.all(np.isfinite(leaf)):
-            return jax.tree_util.keystr(path)
-    return "(none found)"
-
-
-def divergence_message(
-    report: ChunkReport,
-    seeds: list,
-    chunk_end: int,
-    loss_names: tuple[str, ...],
-    agent_of_row,
-    rows: list[int] | None = None,
-) -> str | None:
-    """None when every member of the chunk is healthy, else one line naming the first member to go
-    non-finite (``seeds[row]``: its name), the step and the quantity (``agent_of_row(row)`` gives
-    that member's agent state). Only ``rows`` (default: all) are read; when none of them diverged
-    but ``report.unhealthy_members`` says that a member of another process did, the line says so."""
-    health = report.health
-    loss_step = np.asarray(health.first_nonfinite_step)
-    rows = range(len(seeds)) if rows is None else rows
-    bad_rows = [r for r in rows if loss_step[r] >= 0 or not health.agent_finite[r]]
-    if not bad_rows:
-        if int(np.asarray(report.unhealthy_members)) > 0:
-            return (
-                f"a member held by another process diverged by step {chunk_end} (its process's log names it)"
-            )
-        return None
-    first_step = {r: int(loss_step[r]) if loss_step[r] >= 0 else chunk_end for r in bad_rows}
-    row = min(bad_rows, key=lambda r: (first_step[r], r))
-    if loss_step[row] >= 0:
-        name = loss_names[int(health.first_nonfinite_loss[row])]
-        what = f"{name} became non-finite"
-    else:
-        what = f"the agent's {_first_nonfinite_leaf(agent_of_row(row))} became non-finite"
-    others = len(bad_rows) - 1
-    also = f" ({others} other{'s' if others > 1 else ''} too)" if others else ""
-    return f"{seeds[row]} diverged at step {first_step[row]}{also}: {what}"
-
-
-def _expected_rows(cfg: TrainConfig, next_chunk: int) -> tuple[list[int], list[int]]:
-    """The metric and evaluation steps a seed's files must hold when ``next_chunk`` chunks are done."""
-    ends = [cfg.chunk_end_step(c) for c in range(next_chunk)]
-    evals = [s for s in ends if cfg.evaluates_at(s)]
-    return ends, evals
-
-
-class RunClock:
-    """Wall-time bookkeeping of the host loop: time-based checkpoints and the run's cost estimate."""
-
-    def __init__(self, cfg: TrainConfig, num_groups: int):
-        self.cfg = cfg
-        self.num_groups = num_groups
-        self.last_save = time.monotonic()
-        self.save_s: float | None = None  # the last checkpoint's duration
-        self.eval_s: float | None = None  # the last evaluation's duration
-        self.chunk_s: float | None = None  # a chunk's duration with an update per transition
-        self.estimated = False
-
-    def saved(self, seconds: float) -> None:
-        self.save_s = seconds
-        self.last_save = time.monotonic()
-
-    def checkpoint_due_by_time(self) -> bool:
-        minutes = self.cfg.checkpoint_minutes
-        if not minutes:
-            return False
-        interval = max(60.0 * minutes, (self.save_s or 0.0) / CHECKPOINT_TIME_SHARE)
-        return time.monotonic() - self.last_save >= interval
-
-    def expected_chunk_s(self) -> float | None:
-        """How long the next chunk and a checkpoint after it should take (None until measured)."""
-        if self.chunk_s is None:
-            return None
-        return self.chunk_s + (self.save_s or 0.0)
-
-    def observe_chunk(self, chunk_index: int, seconds: float) -> None:
-        """Learn a chunk's cost from the first one in which at least half the transitions update
-        (updates dominate; scaled up to a chunk that updates on every transition)."""
-        if self.chunk_s is not None:
-            return
-        cfg = self.cfg
-        first = chunk_index * cfg.log_interval
-        last = cfg.chunk_end_step(chunk_index)
-        updating = max(last - max(first, cfg.warmup_steps), 0)
-        if updating * 2 >= last - first:
-            self.chunk_s = seconds * (last - first) / updating
-
-    def remaining_s(self, group_index: int, next_chunk: int) -> float | None:
-        """Time left for the whole run (chunks, evaluations, step-interval checkpoints)."""
-        if self.chunk_s is None:
-            return None
-        cfg = self.cfg
-
-        def cost(first_chunk: int) -> float:  # chunks first_chunk.. of one group, with their events
-            ends = [cfg.chunk_end_step(c) for c in range(first_chunk, cfg.num_chunks)]
-            evals = sum(map(cfg.evaluates_at, ends))
-            saves = sum(map(cfg.checkpoints_at, ends))
-            return len(ends) * self.chunk_s + evals * (self.eval_s or 0.0) + saves * (self.save_s or 0.0)
-
-        return cost(next_chunk) + (self.num_groups - group_index - 1) * cost(0)
-
-
-def cost_lines(cfg: TrainConfig, elapsed_s: float, remaining_s: float, backend: str) -> list[str]:
-    """The estimate of the whole run's time, with a warning and the alternatives beyond a day."""
-    total = elapsed_s + remaining_s
-    steps = cfg.num_members * cfg.total_steps
-    finish = time.strftime("%a %H:%M", time.localtime(time.time() + remaining_s))
-    points = f" x {cfg.num_points} sweep points" if cfg.num_points > 1 else ""
-    lines = [
-        f"estimate: the whole run ({cfg.num_seeds} seed(s){points} x {cfg.total_steps:,} steps) takes "
-        f"~{format_duration(total)} on {backend} ({steps / max(total, 1e-9):,.0f} steps/s); "
-        f"done around {finish}"
-    ]
-    if total > LONG_RUN_S:
-        lines.append(
-            f"warning: this run needs ~{format_duration(total)}; for a result today use --preset quick "
-            "(two Tracking XDSAC seeds take ~14 min on a 2-core CPU), fewer --seeds or --steps, or a GPU "
-            "(pip install -e '.[cuda]'). Stop with Ctrl-C; --resume continues from the last checkpoint."
-        )
-    return lines
 
 
 def train(
@@ -229,13 +76,16 @@ def train(
     stop_after_chunks: int | None = None,
     stop: StopController | None = None,
     warn=None,
+    command: list[str] | None = None,
 ) -> dict[str, Any] | None:
     """Run (or continue) the whole experiment into ``out``; returns the summary.
 
-    Writes (``config.json`` is the caller's, see :func:`xrl_jax.runs.provenance.config_document`):
-    ``plan.json`` (memory plan and seed groups), per seed ``metrics/seed_<i>.jsonl`` (one line per
-    chunk) and ``eval/seed_<i>.jsonl`` (one line per evaluation), per group ``checkpoints/group_<g>``
-    (the newest two, verified on restore), ``timing.jsonl`` and at the end ``summary.json``. Lines
+    Writes ``config.json`` (a new run: the resolved config, versions and ``command``, see
+    :func:`xrl_jax.runs.provenance.config_document`), ``plan.json`` (memory plan and seed groups),
+    per seed ``metrics/seed_<i>.jsonl`` (one line per chunk) and ``eval/seed_<i>.jsonl`` (one line
+    per evaluation), per group ``checkpoints/group_<g>`` (the newest two, verified on restore),
+    ``timing.jsonl`` and at the end ``summary.json`` (with ``unverified_checkpoints`` when a resume
+    restored one without its digests). Lines
     written after the newest checkpoint are dropped on resume and recomputed, so a resumed run's
     files equal an uninterrupted run's.
 
@@ -256,6 +106,9 @@ def train(
     with RunLock(out, jax.process_index()):
         if hosts.is_primary():
             remove_leftovers(out)
+            if not resume:
+                document = config_document(cfg, command)
+                write_atomic(run_paths(out)["config"], json.dumps(document, indent=2, sort_keys=True) + "\n")
         hosts.sync("xrl-jax: run folder ready")
         try:
             return _HostLoop(cfg, out, trainer, log, warn, progress, stop).run(resume, stop_after_chunks)
@@ -294,6 +147,7 @@ class _HostLoop:
         self.chunks_left: int | None = None
         self.saved_step = 0  # the newest checkpoint of the running member group
         self.rows: list[int] = []  # the running group's rows that this process holds and writes
+        self.unverified: list[tuple[int, int]] = []  # (group, step) restored without digests
 
     # ---- the run ------------------------------------------------------------------------------
     def run(self, resume: bool, stop_after_chunks: int | None) -> dict[str, Any] | None:
@@ -322,11 +176,10 @@ class _HostLoop:
             plan = plan_memory(self.trainer, cfg.replace(max_group_size=smallest))
         devices = self.trainer.num_devices
         if resume and paths["plan"].exists():  # keep the grouping the checkpoints were made with
-            stored = json.loads(paths["plan"].read_text())
-            plan["groups"] = stored["groups"]
-            padded = [len(padded_members(g, devices)) for g in stored["groups"]]
-            was = stored.get("devices", 1)
-            if padded != [len(padded_members(g, was)) for g in stored["groups"]]:
+            stored_groups, was = read_checkpoint_plan(self.out, cfg.num_members)
+            plan["groups"] = stored_groups
+            padded = [len(padded_members(g, devices)) for g in stored_groups]
+            if padded != [len(padded_members(g, was)) for g in stored_groups]:
                 raise ConfigError(
                     f"{self.out} was trained on {was} device(s) in all; its checkpoints hold rows for that "
                     f"count, so resume it on {was} device(s) (--devices, or as many processes as before)"
@@ -391,21 +244,10 @@ class _HostLoop:
         mine = [members[r] for r in self.rows]
         ckpt = Checkpointer(self.paths["checkpoints"] / f"group_{group_index}")
         try:
-            state, next_chunk = _restore_group(
-                cfg,
-                trainer,
-                ckpt,
-                members,
-                len(rows),
-                group_index,
-                self.fingerprint,
-                resume,
-                self.log,
-                self.warn,
-            )
+            state, next_chunk = self._restore(ckpt, members, len(rows), group_index, resume)
             resumed_step = cfg.chunk_end_step(next_chunk - 1) if next_chunk else 0
             self.saved_step = resumed_step
-            metric_steps, eval_steps = _expected_rows(cfg, next_chunk)
+            metric_steps, eval_steps = expected_rows(cfg, next_chunk)
             for member in mine:  # what the checkpoint continues must still be on disk
                 metrics, evals = self._files(member)
                 check_history(metrics, metric_steps, "metric")
@@ -429,6 +271,25 @@ class _HostLoop:
                 state = self._chunk(state, ckpt, group_index, members, chunk_index)
         finally:
             ckpt.close()
+
+    def _restore(self, ckpt, members: list[int], num_rows: int, group_index: int, resume: bool):
+        """``(state or None, next_chunk)`` of a member group: its newest good checkpoint when resuming.
+        A resume that finds none says so: the group starts again from step 0."""
+        if not resume:
+            return None, 0
+        if ckpt.latest_step() is None:
+            self.warn(
+                f"--resume: member group {group_index + 1} of {len(self.groups)} has no checkpoint in "
+                f"{ckpt.directory} (deleted, or every one was damaged and set aside in "
+                f"{ckpt.directory.name}.rejected); it starts again from step 0"
+            )
+            return None, 0
+        state, meta = restore_group(
+            ckpt, self.trainer, members, num_rows, self.fingerprint, group_index, self.warn
+        )
+        self.unverified += [(group_index, step) for step in ckpt.unverified_steps]
+        self.log(f"resuming member group {group_index + 1} from its checkpoint at step {meta['step']:,}")
+        return state, int(meta["next_chunk"])
 
     def _compile(self, state: RunState, next_chunk: int) -> None:
         """Compile the chunk ahead of its first call, so that chunk timings are execution alone."""
@@ -461,7 +322,7 @@ class _HostLoop:
         collected = (step - (cfg.chunk_end_step(chunk_index - 1) if chunk_index else 0)) * len(members)
         self.timing["train_s"] += elapsed
         self.timing["env_steps"] += collected
-        for member, line in _metric_lines(cfg, step, members, self.rows, report):
+        for member, line in metric_lines(cfg, step, members, self.rows, report):
             append_lines(self._files(member)[0], [line])
 
         def agent_of_row(row):
@@ -550,6 +411,8 @@ class _HostLoop:
         hosts.sync("xrl-jax: all records written")  # every process's members are in their files
         summary = summarize_run(self.out, self.cfg)
         summary["timing_this_session"] = timing
+        if self.unverified:  # restored with only a finiteness check (no digest manifest)
+            summary["unverified_checkpoints"] = [{"group": g, "step": s} for g, s in self.unverified]
         summary["memory_plan"] = {k: v for k, v in self.plan.items() if k != "groups"} | {
             "groups": len(self.groups),
             "processes": jax.process_count(),
@@ -561,47 +424,3 @@ class _HostLoop:
             if summary.get("sweep"):
                 plot_sweep(summary, self.paths["sweep"])
         return summary
-
-
-def _restore_group(cfg, trainer, ckpt, members, num_rows, group_index, fingerprint, resume, log, warn):
-    """``(state or None, next_chunk)`` of a member group (``num_rows`` rows with the padding): its
-    newest good checkpoint when resuming."""
-    if not resume or ckpt.latest_step() is None:
-        return None, 0
-    try:
-        meta = ckpt.metadata()
-    except CorruptCheckpointError:
-        meta = None  # a damaged newest checkpoint: restore_newest_good reports it and falls back
-    if meta is not None and meta.get("config", fingerprint) != fingerprint:
-        raise ConfigError(
-            f"checkpoint group {group_index} in {ckpt.directory.parent} was written by another "
-            "configuration than config.json describes; start a new run with --out"
-        )
-    if meta is not None and _stored_members(meta) != members:
-        raise ConfigError(
-            f"checkpoint group {group_index} holds members {_stored_members(meta)}, expected {members}"
-        )
-
-    def check(state, meta) -> str | None:
-        if meta.get("config") != fingerprint or _stored_members(meta) != members:
-            return "it belongs to another configuration or member group"
-        if not all_finite(state.agent):
-            return f"the agent's {_first_nonfinite_leaf(hosts.fetch(state.agent))} is not finite"
-        return None
-
-    state, meta = ckpt.restore_newest_good(trainer.abstract_state(num_rows), check, warn)
-    log(f"resuming member group {group_index + 1} from its checkpoint at step {meta['step']:,}")
-    return state, int(meta["next_chunk"])
-
-
-def _stored_members(meta: dict) -> list[int] | None:
-    return meta.get("members", meta.get("seeds"))  # runs before sweeps stored their seeds
-
-
-def all_finite(tree) -> bool:
-    """Whether every float leaf of a (global) pytree is finite, the same answer on every process."""
-    if jax.process_count() == 1:
-        return bool(tree_all_finite(tree))
-    leaves = [x for x in jax.tree.leaves(hosts.fetch(tree)) if np.issubdtype(x.dtype, np.floating)]
-    local = all(np.all(np.isfinite(x)) for x in leaves)
-    return bool(hosts.gathered(local).all())
