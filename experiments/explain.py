@@ -6,7 +6,7 @@ The agent of seed ``i`` is restored from the run's newest checkpoint and drives 
 ``j`` (the fixed tracks of the run's evaluations) in its evaluation mode; the episode is one
 compiled ``lax.scan``. ``--out`` decides what is written: ``.png`` the frame of step ``k``,
 ``.gif`` / ``.mp4`` the whole episode. The per-step attributions (every object's weight and world
-position) go to JSON lines next to it. See ``xrl_jax/explain_figures.py`` for how to read a figure.
+position) go to JSON lines next to it. See ``xrl_jax/explain/figures.py`` for how to read a figure.
 
 Intersection runs replay evaluation episode ``j`` (8 vehicles, the evaluation's traffic), every
 car driven by the agent; the figure follows vehicle slot ``s`` (default: the first slot holding a
@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     from xrl_jax.explain import RunError, load_trained_agent, make_episode_rollout, single_track_params
-    from xrl_jax.explain_figures import EpisodeFigures, write_attributions
+    from xrl_jax.explain.figures import EpisodeFigures, write_attributions
 
     env = _stored_env(Path(args.run))
     if env is not None and env not in EPISODE_ENVS + MULTI_AGENT_ENVS:
@@ -231,7 +231,7 @@ def explain_intersection(args, out: Path, suffix: str, attributions: Path, cfg, 
 
     from envs.render import save_png, save_video
     from xrl_jax.explain import make_multiagent_episode_rollout
-    from xrl_jax.explain_figures import IntersectionEpisodeFigures, first_alive_slot, write_attributions
+    from xrl_jax.explain.figures import IntersectionEpisodeFigures, first_alive_slot, write_attributions
 
     params = trainer.eval_params
     max_steps = int(params.episode_steps)

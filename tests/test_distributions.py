@@ -721,12 +721,12 @@ def test_sample_slot_never_draws_absent_slots_and_falls_back_to_uniform():
 
 def test_pairwise_density_gradient_equals_autodiff_of_its_formula():
     """The K samples × K components density has its own gradient (sums over samples as products with
-    ones, xrl_jax.distributions._pairwise_log_density); it must be the gradient of the plain formula,
-    absent components (log weight -1e30) included. float64: the two sum the same terms in another
-    order, so they agree to ~K·u relative (u = 1.1e-16); 1e-10 leaves a wide margin."""
+    ones, xrl_jax.distributions.gaussian_density.pairwise_log_density); it must be the gradient of the
+    plain formula, absent components (log weight -1e30) included. float64: the two sum the same terms in
+    another order, so they agree to ~K·u relative (u = 1.1e-16); 1e-10 leaves a wide margin."""
     from jax.test_util import check_grads
 
-    from xrl_jax.distributions import _mixture_log_prob, _pairwise_log_density, tanh_log_det
+    from xrl_jax.distributions.gaussian_density import mixture_log_prob, pairwise_log_density, tanh_log_det
 
     with jax.enable_x64(True):
         rng = np.random.default_rng(0)
@@ -739,14 +739,14 @@ def test_pairwise_density_gradient_equals_autodiff_of_its_formula():
         def plain(*args):
             u, loc, log_scale, log_weights = args
             action = jnp.tanh(u)
-            return _mixture_log_prob(u, action, loc[..., None, :, :], log_scale[..., None, :, :],
-                                     log_weights[..., None, :], False) + tanh_log_det(action)  # fmt: skip
+            return mixture_log_prob(u, action, loc[..., None, :, :], log_scale[..., None, :, :],
+                                    log_weights[..., None, :], False) + tanh_log_det(action)  # fmt: skip
 
         args = (u, loc, log_scale, log_weights)
-        np.testing.assert_allclose(_pairwise_log_density(*args), plain(*args), rtol=1e-12)
-        own = jax.vjp(_pairwise_log_density, *args)[1](cotangent)
+        np.testing.assert_allclose(pairwise_log_density(*args), plain(*args), rtol=1e-12)
+        own = jax.vjp(pairwise_log_density, *args)[1](cotangent)
         reference = jax.vjp(plain, *args)[1](cotangent)
         for got, want in zip(own, reference, strict=True):
             np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(want))))
         finite_weights = log_weights.at[:, 4:].set(-3.0)  # finite differences need finite weights
-        check_grads(_pairwise_log_density, (*args[:3], finite_weights), order=1, modes=["rev"])
+        check_grads(pairwise_log_density, (*args[:3], finite_weights), order=1, modes=["rev"])

@@ -18,7 +18,7 @@ from xrl_jax.agents import make_agent
 from xrl_jax.config import preset
 from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture
 from xrl_jax.explain import Explanation, make_episode_rollout, single_track_params
-from xrl_jax.explain_figures import (
+from xrl_jax.explain.figures import (
     GLYPH_Z,
     EpisodeFigures,
     ObjectSet,
@@ -285,7 +285,7 @@ def test_episode_frames_are_identical_under_the_same_key(tracking_episode):
 
 def test_intersection_frame_draws_the_neutral_component_at_the_ego_and_others_at_their_vehicles():
     from xrl_jax.explain import explain
-    from xrl_jax.explain_figures import slot_pose
+    from xrl_jax.explain.figures import slot_pose
 
     env, params = envs.make("intersection_discrete", max_vehicles=8)
     obs, state = jax.jit(env.reset)(jax.random.PRNGKey(0), params)
@@ -380,7 +380,7 @@ def test_multiagent_rollout_replays_the_evaluation_episode():
 def test_intersection_figures_follow_the_slot_and_name_a_new_car():
     from types import SimpleNamespace
 
-    from xrl_jax.explain_figures import IntersectionEpisodeFigures, first_alive_slot
+    from xrl_jax.explain.figures import IntersectionEpisodeFigures, first_alive_slot
 
     acted = np.zeros((6, 8), bool)
     acted[[0, 1, 4, 5], 2] = True  # slot 2: car 3 for two steps, empty, then car 11

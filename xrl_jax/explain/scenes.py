@@ -70,7 +70,7 @@ SCENES: dict[str, Scene] = {
         "alternate",
     ),
     # Multi-agent (docs/carenv-intersection.md §7.1): rows (present, x/30, y/30, ...) of the other
-    # vehicles; the base frame comes from envs.render.render_intersection_state (explain_drawing.render_base).
+    # vehicles; the base frame comes from envs.render.render_intersection_state (drawing.render_base).
     "intersection": Scene("vehicles_set", 1, 2, lambda env, p: 30.0, _vehicle_label, "fixed"),
 }
 

@@ -2,7 +2,7 @@
 
 Discrete actions become the paper's 4 × 3 matrix of probabilities; continuous ones an exact
 probability-mass image over steering × longitudinal control (throttle − brake), so a glyph shows
-the distribution itself rather than a sample of it. How to read them: :mod:`xrl_jax.explain_figures`.
+the distribution itself rather than a sample of it. How to read them: :mod:`xrl_jax.explain.figures`.
 """
 
 from __future__ import annotations

@@ -24,21 +24,21 @@ Host side only (numpy + matplotlib); the episode itself is rolled out on the dev
   weighted sum of the glyphs' distributions. Baselines (SAC / DSAC) have no objects: they show only
   the inset.
 
-The pieces live where their names say: :mod:`~xrl_jax.explain_glyphs` (glyph contents),
-:mod:`~xrl_jax.explain_scenes` (where the objects are), :mod:`~xrl_jax.explain_drawing` (glyphs on
-the bird view) and :mod:`~xrl_jax.explain_episodes` (recorded episodes: frames and attributions).
+The pieces live where their names say: :mod:`~xrl_jax.explain.glyphs` (glyph contents),
+:mod:`~xrl_jax.explain.scenes` (where the objects are), :mod:`~xrl_jax.explain.drawing` (glyphs on
+the bird view) and :mod:`~xrl_jax.explain.episodes` (recorded episodes: frames and attributions).
 This module gathers their public names.
 """
 
-from xrl_jax.explain_drawing import GLYPH_Z, Glyph, draw_explanation, explained_frame, render_base
-from xrl_jax.explain_episodes import (
+from xrl_jax.explain.drawing import GLYPH_Z, Glyph, draw_explanation, explained_frame, render_base
+from xrl_jax.explain.episodes import (
     EpisodeFigures,
     IntersectionEpisodeFigures,
     attribution_items,
     first_alive_slot,
     write_attributions,
 )
-from xrl_jax.explain_glyphs import (
+from xrl_jax.explain.glyphs import (
     StepExplanation,
     component_density_images,
     discrete_matrix,
@@ -48,7 +48,7 @@ from xrl_jax.explain_glyphs import (
     steering_masses,
     step_explanation,
 )
-from xrl_jax.explain_scenes import (
+from xrl_jax.explain.scenes import (
     SCENES,
     ObjectSet,
     Scene,

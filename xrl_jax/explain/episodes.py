@@ -1,7 +1,7 @@
 """Recorded episodes as figures and attributions: any step's frame, a whole episode's frames, and
 one JSON-ready row per step (which object weighed how much, and where it was).
 
-The records come from :mod:`xrl_jax.explain`'s rollouts (device side); everything here runs on
+The records come from :mod:`xrl_jax.explain.explanations`'s rollouts (device side); everything here runs on
 host copies of them. Single-agent episodes follow the one ego car; intersection episodes follow a
 vehicle slot, i.e. whichever car occupies it.
 """
@@ -17,9 +17,9 @@ from typing import Any
 import jax
 import numpy as np
 
-from xrl_jax.explain_drawing import Glyph, explained_frame
-from xrl_jax.explain_glyphs import StepExplanation, step_explanation
-from xrl_jax.explain_scenes import (
+from xrl_jax.explain.drawing import Glyph, explained_frame
+from xrl_jax.explain.glyphs import StepExplanation, step_explanation
+from xrl_jax.explain.scenes import (
     ObjectSet,
     ego_pose,
     intersection_objects,

@@ -2,7 +2,7 @@
 
 Glyphs are drawn through the renderer's overlay callback, so they share its view transform
 (following the ego car, optionally mirrored) and land exactly on the objects they explain.
-How to read a figure: :mod:`xrl_jax.explain_figures`.
+How to read a figure: :mod:`xrl_jax.explain.figures`.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import numpy as np
 from matplotlib import colormaps
 from matplotlib.patches import Rectangle
 
-from xrl_jax.explain_glyphs import StepExplanation
-from xrl_jax.explain_scenes import ObjectSet
+from xrl_jax.explain.glyphs import StepExplanation
+from xrl_jax.explain.scenes import ObjectSet
 
 DEFAULT_THRESHOLD = 0.05
 DEFAULT_MAX_SIDE = 7.0  # metres of view: the side of a weight-1 glyph

@@ -1,0 +1,53 @@
+"""Explanations of mixture policies: what each observed object contributes to the action, recorded
+over episodes and drawn onto the bird view.
+
+Modules, by what they hold:
+
+* :mod:`~xrl_jax.explain.explanations`: the per-object explanation of a policy and its pruning,
+  episodes rolled out on the device with an explanation per step, and trained agents loaded from a
+  results folder (device side; its names are re-exported here);
+* :mod:`~xrl_jax.explain.glyphs`: what one object's action distribution looks like in a glyph;
+* :mod:`~xrl_jax.explain.scenes`: where a step's observed objects are in the world;
+* :mod:`~xrl_jax.explain.drawing`: glyphs drawn onto the bird view of ``envs.render``;
+* :mod:`~xrl_jax.explain.episodes`: recorded episodes as frames and per-step attributions;
+* :mod:`~xrl_jax.explain.figures`: how to read a figure, and the public names of the four above.
+
+The figure modules need matplotlib; importing this package alone does not load them, so the
+results-folder readers (:func:`read_run_config`, :func:`load_trained_agents`) stay light.
+"""
+
+from xrl_jax.explain.explanations import (
+    EpisodeRecord,
+    Explanation,
+    MultiAgentEpisodeRecord,
+    Policy,
+    RunError,
+    explain,
+    keep_components,
+    load_trained_agent,
+    load_trained_agents,
+    make_episode_rollout,
+    make_multiagent_episode_rollout,
+    prune,
+    read_run_config,
+    shared_trainer,
+    single_track_params,
+)
+
+__all__ = [
+    "EpisodeRecord",
+    "Explanation",
+    "MultiAgentEpisodeRecord",
+    "Policy",
+    "RunError",
+    "explain",
+    "keep_components",
+    "load_trained_agent",
+    "load_trained_agents",
+    "make_episode_rollout",
+    "make_multiagent_episode_rollout",
+    "prune",
+    "read_run_config",
+    "shared_trainer",
+    "single_track_params",
+]
