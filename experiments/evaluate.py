@@ -58,9 +58,10 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     from xrl_jax.evaluation import make_evaluate, summarize_episodes
-    from xrl_jax.explain import RunError, load_trained_agents, read_run_config
+    from xrl_jax.runs.folder import RunFolderError, read_run_config
     from xrl_jax.runs.summary import aggregate_metrics, summary_metrics
     from xrl_jax.sets import MEMBERS_AXIS
+    from xrl_jax.train import load_trained_agents
 
     try:
         cfg = read_run_config(run)
@@ -72,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
                 "held-out evaluation already measures generalisation; use --tracks eval"
             )
         cfg, trainer, agent_states = load_trained_agents(run)
-    except RunError as err:
+    except RunFolderError as err:
         return fail(str(err))
     params = trainer.env_params if args.tracks == "train" else trainer.eval_params
     available = int(params.tracks.num_points.shape[0])

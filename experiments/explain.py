@@ -34,11 +34,11 @@ NUM_SLOTS = 8  # envs.intersection.MAX_AGENTS
 
 def _stored_env(run: Path) -> str | None:
     """The scenario of a results folder, or None when its config cannot be read (reported later)."""
-    import json
+    from xrl_jax.runs.folder import RunFolderError, read_run_config
 
     try:
-        return json.loads((run / "config.json").read_text())["config"]["env"]
-    except (OSError, ValueError, KeyError, TypeError):
+        return read_run_config(run).env
+    except RunFolderError:
         return None
 
 
@@ -151,8 +151,10 @@ def main(argv: list[str] | None = None) -> int:
 
     import jax
 
-    from xrl_jax.explain import RunError, load_trained_agent, make_episode_rollout, single_track_params
+    from xrl_jax.explain import make_episode_rollout, single_track_params
     from xrl_jax.explain.figures import EpisodeFigures, write_attributions
+    from xrl_jax.runs.folder import RunFolderError
+    from xrl_jax.train import load_trained_agent
 
     env = _stored_env(Path(args.run))
     if env is not None and env not in EPISODE_ENVS + MULTI_AGENT_ENVS:
@@ -166,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         return fail(f"--slot {args.slot} out of range: the intersection has slots 0..{NUM_SLOTS - 1}")
     try:
         cfg, trainer, agent_state = load_trained_agent(args.run, args.seed, args.point)
-    except RunError as err:
+    except RunFolderError as err:
         return fail(str(err))
     if args.episode >= cfg.eval_episodes:
         what = "episodes" if multi_agent else "on tracks"

@@ -160,9 +160,9 @@ def make_intersection_run_folder(folder: Path, algo: str) -> Path:
     import jax
 
     from xrl_jax.checkpoint import save_checkpoint
-    from xrl_jax.explain import shared_trainer
     from xrl_jax.runs import config_document
     from xrl_jax.train import resolve_config
+    from xrl_jax.train.restore import shared_trainer
 
     cfg = resolve_config("intersection", algo, "smoke")
     folder.mkdir(parents=True)

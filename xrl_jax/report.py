@@ -19,6 +19,7 @@ import numpy as np
 
 from xrl_jax import stats
 from xrl_jax.evaluation import evaluate_yardstick
+from xrl_jax.runs.folder import RunFolderError, read_run_config
 from xrl_jax.runs.plots import format_step_axis, plot_sweep
 from xrl_jax.runs.summary import summarize_run, summary_metrics
 from xrl_jax.runs.tables import curve_label
@@ -63,12 +64,11 @@ class Run:
 
 def read_run(folder: str | Path) -> Run:
     """A results folder's config and its summary, recomputed from the records."""
-    from xrl_jax.explain import RunError, read_run_config
 
     folder = Path(folder)
     try:
         cfg = read_run_config(folder)
-    except RunError as err:
+    except RunFolderError as err:
         raise ReportError(str(err)) from None
     return Run(folder, cfg, summarize_run(folder, cfg))
 

@@ -4,16 +4,16 @@ over episodes and drawn onto the bird view.
 Modules, by what they hold:
 
 * :mod:`~xrl_jax.explain.explanations`: the per-object explanation of a policy and its pruning,
-  episodes rolled out on the device with an explanation per step, and trained agents loaded from a
-  results folder (device side; its names are re-exported here);
+  and episodes rolled out on the device with an explanation per step (its names are re-exported
+  here);
 * :mod:`~xrl_jax.explain.glyphs`: what one object's action distribution looks like in a glyph;
 * :mod:`~xrl_jax.explain.scenes`: where a step's observed objects are in the world;
 * :mod:`~xrl_jax.explain.drawing`: glyphs drawn onto the bird view of ``envs.render``;
 * :mod:`~xrl_jax.explain.episodes`: recorded episodes as frames and per-step attributions;
 * :mod:`~xrl_jax.explain.figures`: how to read a figure, and the public names of the four above.
 
-The figure modules need matplotlib; importing this package alone does not load them, so the
-results-folder readers (:func:`read_run_config`, :func:`load_trained_agents`) stay light.
+The figure modules need matplotlib; importing this package alone does not load them. Trained
+agents come from a results folder through :func:`xrl_jax.train.restore.load_trained_agent`.
 """
 
 from xrl_jax.explain.explanations import (
@@ -21,16 +21,11 @@ from xrl_jax.explain.explanations import (
     Explanation,
     MultiAgentEpisodeRecord,
     Policy,
-    RunError,
     explain,
     keep_components,
-    load_trained_agent,
-    load_trained_agents,
     make_episode_rollout,
     make_multiagent_episode_rollout,
     prune,
-    read_run_config,
-    shared_trainer,
     single_track_params,
 )
 
@@ -39,15 +34,10 @@ __all__ = [
     "Explanation",
     "MultiAgentEpisodeRecord",
     "Policy",
-    "RunError",
     "explain",
     "keep_components",
-    "load_trained_agent",
-    "load_trained_agents",
     "make_episode_rollout",
     "make_multiagent_episode_rollout",
     "prune",
-    "read_run_config",
-    "shared_trainer",
     "single_track_params",
 ]

@@ -25,6 +25,7 @@ from xrl_jax.tracks import cache_dir, cached_track_bank, make_envs, track_cache_
 from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, make_train
 from xrl_jax.train.loop import DiskFullError, DivergenceError, train
 from xrl_jax.train.memory import MemoryPlanError, estimate_seed_bytes, plan_memory
+from xrl_jax.train.restore import load_trained_agent, load_trained_agents
 
 __all__ = [
     "ENVS",
@@ -41,6 +42,8 @@ __all__ = [
     "cached_track_bank",
     "estimate_seed_bytes",
     "get_trainer",
+    "load_trained_agent",
+    "load_trained_agents",
     "make_envs",
     "make_train",
     "parse_overrides",
