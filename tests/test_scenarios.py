@@ -536,3 +536,21 @@ class EagerAndJitAgree(chex.TestCase):
         chex.assert_shape([obs1["state"], obs1["trajectory_set"]], [(6,), (25, 4)])
         chex.assert_rank([reward, terminated, truncated, info["done_reason"]], 0)
         assert not bool(terminated | truncated)
+
+
+def test_the_scenario_table_describes_each_envs_observation(road, tracking):
+    """xrl_jax.config.SCENARIOS is what the networks and readers use instead of asking the env: its
+    set key, slot count, features and state size must be the env's own observation space's."""
+    from xrl_jax.config import SCENARIOS
+
+    intersection = envs.make("intersection")
+    for name, (env, params) in {
+        "country_road": road,
+        "tracking": tracking,
+        "intersection": intersection,
+    }.items():
+        facts, space = SCENARIOS[name], env.observation_space(params)
+        assert set(space.spaces) == {"state", facts.set_key}, name
+        assert space[facts.set_key].shape == (facts.num_objects, facts.object_features), name
+        assert space["state"].shape == (facts.state_dim,), name
+        assert facts.multi_agent == (name == "intersection")

@@ -32,7 +32,7 @@ from xrl_jax.actors import (
     MixtureGaussianActor,
     centre,
 )
-from xrl_jax.config import AgentConfig
+from xrl_jax.config import SCENARIOS, AgentConfig
 from xrl_jax.critics import (
     ContinuousCritic,
     ContinuousQHead,
@@ -72,10 +72,8 @@ class ObservationShape:
 
 
 ENV_OBSERVATIONS: dict[str, ObservationShape] = {
-    "country_road": ObservationShape("cones_set", 100, 5, 6),
-    "tracking": ObservationShape("trajectory_set", 25, 4, 6),
-    # per agent: 8 other-vehicle slots (present, rel x/y, vel x/y, dir cos/sin) and odometry + route
-    "intersection": ObservationShape("vehicles_set", 8, 7, 66),
+    name: ObservationShape(facts.set_key, facts.num_objects, facts.object_features, facts.state_dim)
+    for name, facts in SCENARIOS.items()
 }
 
 

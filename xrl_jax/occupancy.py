@@ -28,9 +28,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from xrl_jax import config
+
 SCENARIOS = ("tracking", "country_road", "intersection")
 OCCUPANCY_FILE = Path(__file__).resolve().parent.parent / "docs" / "set_occupancy.json"
-SET_KEYS = {"tracking": "trajectory_set", "country_road": "cones_set", "intersection": "vehicles_set"}
+SET_KEYS = {name: config.scenario(name).set_key for name in SCENARIOS}
 DEFAULTS = {
     "tracking": {"num_tracks": 32, "steps": 600, "seed": 0},
     "country_road": {"num_tracks": 32, "steps": 600, "seed": 0},

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from xrl_jax import stats
+from xrl_jax.config import scenario
 from xrl_jax.evaluation import evaluate_yardstick
 from xrl_jax.runs.folder import RunFolderError, read_run_config
 from xrl_jax.runs.plots import format_step_axis, plot_sweep
@@ -82,17 +83,11 @@ def paper_values() -> dict[tuple[str, str, str], dict]:
 def table_metrics(env: str) -> tuple[tuple[str, str], ...]:
     """The (key, label) pairs of ``env``'s table; the first two are its figure's (the paper's Fig. 5/6:
     return and early-termination rate; on the Intersection Fig. 7's trips and early terminations)."""
-    metrics = dict(summary_metrics(env))
-    if env == "intersection":
-        keys = ("avg_trips_completed", "avg_early_terminations", "avg_return")
-    else:
-        keys = ("avg_return", "avg_etr")
-    return tuple((key, metrics[key]) for key in keys)
+    return scenario(env).table_metrics
 
 
 def yardstick_name(env: str, speed: float) -> str:
-    kind = "scripted driver" if env == "intersection" else "hand controller"
-    return f"{kind} ({speed:g} m/s)"
+    return f"{scenario(env).yardstick} ({speed:g} m/s)"
 
 
 def _cell(agg: dict | None) -> str:
@@ -141,7 +136,7 @@ def controller_rows(
     the runs' held-out tracks; Intersection: the scripted driver of :mod:`envs.intersection_driver`
     on the runs' evaluation episodes. ``target_speed`` None is the driver's own default."""
     metrics = table_metrics(env)
-    multi = env == "intersection"  # its evaluation episodes are fixed: no track seed
+    multi = scenario(env).multi_agent  # its evaluation episodes are fixed: no track seed
     track_sets = sorted({(None if multi else r.cfg.eval_track_seed, r.cfg.eval_episodes) for r in runs
                          if r.cfg.env == env and not r.is_sweep}, key=str)  # fmt: skip
     rows, results = [], []
@@ -181,7 +176,7 @@ def csv_table(rows: list[dict[str, str]]) -> str:
 def improvement_metrics(env: str) -> tuple[str, ...]:
     """The metrics P(explainable > baseline) is taken on: return; on the Intersection, Fig. 7's
     completed trips and early terminations (there a value below 0.5 favours the explainable agent)."""
-    return ("avg_trips_completed", "avg_early_terminations") if env == "intersection" else ("avg_return",)
+    return scenario(env).improvement_keys
 
 
 def _scores_at(run: Run, metric: str, step: int | None) -> np.ndarray:
@@ -357,7 +352,7 @@ def write_report(
         figure = plot_env(runs, env, out / f"{env}.png", references)
         if figure is not None:
             lines += [f"![{env}]({figure.name})", ""]
-        if env == "intersection":  # the paper's Fig. 7: learning curves of each pair
+        if scenario(env).multi_agent:  # the paper's Fig. 7: learning curves of each pair
             pairs = plot_pairs(runs, env, out / f"{env}_pairs.png", references)
             if pairs is not None:
                 lines += [f"![{env}: pairs]({pairs.name})", ""]

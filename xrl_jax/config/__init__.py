@@ -8,6 +8,8 @@ presets as tables, and the one typed parser behind ``--set`` (docs/algorithms.md
   :class:`AgentConfig` and validates its sweep.
 * :func:`resolve_config` (:mod:`~xrl_jax.config.resolve`): preset (:mod:`~xrl_jax.config.presets`),
   explicit arguments, then ``--set`` overrides (:mod:`~xrl_jax.config.overrides`), validated.
+* :data:`SCENARIOS` (:mod:`~xrl_jax.config.scenarios`): each scenario's facts in one table
+  (observation layout, multi-agent, reported metrics, yardstick).
 * :mod:`~xrl_jax.config.names`: the shared names and constants; :mod:`~xrl_jax.config.checks`:
   :class:`ConfigError` and the checks both configs use.
 
@@ -31,7 +33,6 @@ from xrl_jax.config.names import (
     MAX_VEHICLES,
     MIXTURE_ALGOS,
     MIXTURE_LOG_STD_MIN,
-    MULTI_AGENT_ENVS,
     PRESETS,
     SAC_LOG_STD_MIN,
     SWEEPABLE_FIELDS,
@@ -52,6 +53,7 @@ from xrl_jax.config.presets import (
     preset_train_fields,
 )
 from xrl_jax.config.resolve import resolve_config, settings_help
+from xrl_jax.config.scenarios import MULTI_AGENT_ENVS, SCENARIOS, Scenario, scenario
 from xrl_jax.config.train import TrainConfig, train_field_names, unused_sweep_reason
 
 __all__ = [
@@ -75,6 +77,7 @@ __all__ = [
     "QUICK_RACING_OPTIMISATION",
     "QUICK_SIZES",
     "SAC_LOG_STD_MIN",
+    "SCENARIOS",
     "SMOKE_SIZES",
     "SWEEPABLE_FIELDS",
     "TRACED_FIELDS",
@@ -82,6 +85,7 @@ __all__ = [
     "TRUNCATION_MODES",
     "AgentConfig",
     "ConfigError",
+    "Scenario",
     "TrainConfig",
     "apply_overrides",
     "field_names",
@@ -91,6 +95,7 @@ __all__ = [
     "preset",
     "preset_train_fields",
     "resolve_config",
+    "scenario",
     "settings_help",
     "train_field_names",
     "unused_sweep_reason",

@@ -5,7 +5,6 @@ agent settings are traced, sweepable or host-only."""
 ALGOS = ("sac", "dsac", "xsac", "xdsac")
 ENVS = ("country_road", "tracking", "intersection")
 PRESETS = ("paper", "quick", "smoke")
-MULTI_AGENT_ENVS = ("intersection",)
 CONTINUOUS_ALGOS = ("sac", "xsac")
 DISCRETE_ALGOS = ("dsac", "xdsac")
 MIXTURE_ALGOS = ("xsac", "xdsac")

@@ -11,7 +11,8 @@ from typing import Any
 
 from xrl_jax.config.agent import AgentConfig
 from xrl_jax.config.checks import ConfigError, check_choice, check_known, is_int, is_number, require, setting
-from xrl_jax.config.names import ALGOS, ENVS, MAX_VEHICLES, MULTI_AGENT_ENVS, PRESETS, SWEEPABLE_FIELDS
+from xrl_jax.config.names import ALGOS, ENVS, MAX_VEHICLES, PRESETS, SWEEPABLE_FIELDS
+from xrl_jax.config.scenarios import MULTI_AGENT_ENVS
 
 
 @dataclasses.dataclass(frozen=True)
