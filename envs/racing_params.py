@@ -19,7 +19,7 @@ from envs.core import default_float
 from envs.ring_geometry import RingTables, ring_tables
 from envs.track import Track
 from envs.track_generator import make_track_bank
-from envs.vehicle import VehicleParams
+from envs.vehicle_state import VehicleParams
 
 DEFAULT_BANK_SIZE = 128
 

@@ -47,7 +47,7 @@ from envs.racing_params import (
 )
 from envs.track import Track
 from envs.tracking import Tracking
-from envs.vehicle import VehicleParams
+from envs.vehicle_state import VehicleParams
 
 _SCENARIOS = {
     "country_road": (CountryRoad, False),

@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Polygon, Rectangle
 
 from envs.track import CONE_RADIUS
-from envs.vehicle import VEHICLE_HALF_LENGTH, VEHICLE_HALF_WIDTH
+from envs.vehicle_state import VEHICLE_HALF_LENGTH, VEHICLE_HALF_WIDTH
 
 BACKGROUND = (0.8, 0.8, 0.8)
 ROAD_GREY = (0.6, 0.6, 0.6)
