@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from envs.core import Box
 from envs.racing import RacingEnv, RacingParams
 from envs.ring_geometry import TrackView, cone_body_positions
-from envs.vehicle import VehicleState
+from envs.vehicle_state import VehicleState
 
 MAX_VISIBLE_CONES = 100
 

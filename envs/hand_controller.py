@@ -19,7 +19,7 @@ import jax.numpy as jnp
 
 from envs.racing import RacingEnv, RacingParams, RacingState
 from envs.ring_geometry import points_at_arclength
-from envs.vehicle import body_velocity, world_to_body
+from envs.vehicle_state import body_velocity, world_to_body
 
 STEER_POINT = 4  # lookahead index (× lookahead_spacing = 8 m ahead) the car steers towards
 CURVE_POINT = 10  # lookahead index (20 m ahead) that tells a bend is coming

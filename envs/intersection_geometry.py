@@ -24,7 +24,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from envs.vehicle import VEHICLE_HALF_LENGTH, VEHICLE_HALF_WIDTH
+from envs.vehicle_state import VEHICLE_HALF_LENGTH, VEHICLE_HALF_WIDTH
 
 # ------------------------------------------------------------------------------------------------
 # Constants (§1)

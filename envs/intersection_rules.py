@@ -15,7 +15,7 @@ from envs.intersection_state import (
     IntersectionParams,
     IntersectionState,
 )
-from envs.vehicle import VehicleState, body_velocity, odometry_observation, world_to_body
+from envs.vehicle_state import VehicleState, body_velocity, odometry_observation, world_to_body
 
 
 def _route_tables(route, dtype):

@@ -12,7 +12,7 @@ import numpy as np
 from flax import struct
 
 from envs import intersection_geometry as geo
-from envs.vehicle import VehicleParams, VehicleState
+from envs.vehicle_state import VehicleParams, VehicleState
 
 MAX_AGENTS = 8
 NUM_SPAWNERS = 4

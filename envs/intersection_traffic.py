@@ -21,7 +21,7 @@ from envs.intersection_state import (
     IntersectionParams,
     IntersectionState,
 )
-from envs.vehicle import VehicleState
+from envs.vehicle_state import VehicleState
 
 
 def _spawn_cars(key, params: IntersectionParams, approach, dtype):

@@ -33,7 +33,6 @@ True. Finite continuous actions outside [-1, 1] are clipped (§4.1), however lar
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from typing import Any
 
@@ -44,6 +43,14 @@ from flax import struct
 
 from envs import actions as actions_mod
 from envs.core import Box, Dict, Discrete, Environment, default_float
+from envs.racing_params import (
+    RESET_CACHE_FIELDS,
+    RacingParams,
+    default_racing_params,
+    stack_tracks,
+    with_bank,
+    with_track,
+)
 from envs.ring_geometry import (
     RingTables,
     TrackView,
@@ -54,77 +61,28 @@ from envs.ring_geometry import (
 )
 from envs.track import Track
 from envs.track_generator import generate_track
-from envs.vehicle import VehicleParams, VehicleState, odometry_observation, vehicle_step
+from envs.vehicle import VehicleState, odometry_observation, vehicle_step
 
 DONE_NONE, LEFT_TRACK, MAX_TIME, IDLING, NONFINITE_ACTION = 0, 1, 2, 3, 4
 # done_reason code -> the original's name (index = code).
 DONE_REASONS = dict(enumerate(("", "LeftTrack", "MaxTime", "Idling", "NonFiniteAction")))
 
-
-@struct.dataclass
-class RacingParams:
-    """Everything configurable about a racing episode. Numeric leaves may be traced (vmapped sweeps).
-
-    ``tracks`` is a bank with a leading axis and ``tables`` its :class:`RingTables` (same axis; use
-    :func:`with_bank` / :func:`with_track` to set both). ``track_source`` is static.
-
-    ``start_s``, ``reset_obs`` and ``reset_cache_for`` are a cache of each bank track's start arc
-    length and reset observation, built only by :meth:`RacingEnv.prepare` for the env configuration
-    ``reset_cache_for``. They cannot go stale: ``replace`` of a field they depend on drops them, and
-    reset uses them only for the env they were built for (otherwise it computes the start on the fly).
-    """
-
-    vehicle: VehicleParams
-    tracks: Track | None
-    tables: RingTables | None = None
-    start_s: jax.Array | None = None  # (bank,) start arc lengths
-    reset_obs: dict | None = None  # (bank, ...) reset observations
-    reset_cache_for: tuple | None = struct.field(pytree_node=False, default=None)  # RacingEnv._config()
-    k_forwards: float = 0.1
-    k_base: float = 0.0
-    k_center: float = 0.0
-    cone_penalty: float = 0.2
-    offtrack_reward: float = -1.0
-    track_width: float = 8.0
-    idle_speed: float = 0.1
-    max_steps: int = 600  # MaxTime truncation at this step count (60 s / 0.1 s)
-    max_idle_steps: int = 51  # Idling truncation at this many consecutive idle steps (> 5 s)
-    # Cone sensor (Country Road): strict bbox in the body frame and the single normaliser.
-    cone_bbox: tuple = (-15.0, 45.0, -30.0, 30.0)
-    cone_normaliser: float = 45.0
-    # Trajectory sensor (Tracking): spacing of the lookahead points along the centre line.
-    lookahead_spacing: float = 2.0
-    track_source: str = struct.field(pytree_node=False, default="bank")
-
-    @property
-    def bank_size(self) -> int:
-        return 0 if self.tracks is None else int(self.tracks.num_points.shape[0])
-
-
-RESET_CACHE_FIELDS = ("start_s", "reset_obs", "reset_cache_for")
-# Fields the reset observation and start arc length do not depend on (rewards and endings only).
-_NOT_IN_RESET = (
-    "k_forwards",
-    "k_base",
-    "k_center",
-    "cone_penalty",
-    "offtrack_reward",
-    "track_width",
-    "idle_speed",
-    "max_steps",
-    "max_idle_steps",
-)
-
-
-def _replace_dropping_cache(self: RacingParams, **updates) -> RacingParams:
-    """``dataclasses.replace`` that drops the reset cache when a field it depends on changes (any field
-    but the cache itself and those of ``_NOT_IN_RESET``, so a new field is covered by default)."""
-    if set(updates) - set(RESET_CACHE_FIELDS) - set(_NOT_IN_RESET):
-        updates = {**dict.fromkeys(RESET_CACHE_FIELDS), **updates}
-    return dataclasses.replace(self, **updates)
-
-
-RacingParams.replace = _replace_dropping_cache  # flax's struct.dataclass installs a plain replace
+__all__ = [  # the params names are re-exported: callers import them from here
+    "DONE_NONE",
+    "DONE_REASONS",
+    "IDLING",
+    "LEFT_TRACK",
+    "MAX_TIME",
+    "NONFINITE_ACTION",
+    "RESET_CACHE_FIELDS",
+    "RacingEnv",
+    "RacingParams",
+    "RacingState",
+    "check_action",
+    "stack_tracks",
+    "with_bank",
+    "with_track",
+]
 
 
 @struct.dataclass
@@ -143,29 +101,6 @@ class RacingState:
     track_progress: jax.Array  # m along the travel direction
     velocity_sum: jax.Array  # sum of per-step along-track speeds (for the running mean)
     cones_hit: jax.Array  # int32, cumulative
-
-
-def stack_tracks(tracks) -> Track:
-    """Stack single tracks into a bank (leading axis)."""
-    tracks = list(tracks)
-    if not tracks or not all(isinstance(t, Track) for t in tracks):
-        raise ValueError("stack_tracks needs a non-empty sequence of Track")
-    return jax.tree.map(lambda *leaves: jnp.stack([jnp.asarray(x) for x in leaves]), *tracks)
-
-
-def with_bank(params: RacingParams, bank: Track) -> RacingParams:
-    """Params drawing from ``bank`` (a ``Track`` with a leading axis) at every reset."""
-    if not isinstance(bank, Track) or jnp.ndim(bank.num_points) != 1:
-        raise ValueError("bank must be a Track with a leading bank axis (see stack_tracks / make_track_bank)")
-    tables = jax.jit(jax.vmap(ring_tables))(bank)
-    return params.replace(tracks=bank, tables=tables, track_source="bank")
-
-
-def with_track(params: RacingParams, track: Track) -> RacingParams:
-    """Params whose bank holds exactly ``track`` (a single, un-batched ``Track``), e.g. for replays."""
-    if not isinstance(track, Track) or jnp.ndim(track.num_points) != 0:
-        raise ValueError("with_track needs a single (un-batched) Track, e.g. from track_from_arrays")
-    return with_bank(params, stack_tracks([track]))
 
 
 class RacingEnv(Environment):
@@ -208,10 +143,7 @@ class RacingEnv(Environment):
 
     @property
     def default_params(self) -> RacingParams:
-        """The params ``envs.make`` gives this env without overrides: the default track bank
-        (generated once per process, see ``envs.registry.track_bank``), prepared for this env."""
-        from envs.registry import default_racing_params  # the registry builds on this module
-
+        """The params ``envs.make`` gives this env without overrides (``envs.racing_params``)."""
         return default_racing_params(self)
 
     def action_space(self, params: RacingParams | None = None):

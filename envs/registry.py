@@ -29,20 +29,25 @@ Unknown names or overrides raise ``ValueError`` listing the valid ones.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any
 
 import jax
 
-from envs.core import Environment, default_float
+from envs.core import Environment
 from envs.country_road import CountryRoad
-from envs.racing import RESET_CACHE_FIELDS, RacingEnv, RacingParams, with_bank, with_track
+from envs.intersection import IntersectionEnv, IntersectionParams
+from envs.racing import RacingEnv
+from envs.racing_params import (
+    DEFAULT_BANK_SIZE,
+    RESET_CACHE_FIELDS,
+    RacingParams,
+    track_bank,
+    with_bank,
+    with_track,
+)
 from envs.track import Track
-from envs.track_generator import make_track_bank
 from envs.tracking import Tracking
-from envs.vehicle import VehicleParams
-
-DEFAULT_BANK_SIZE = 128
+from envs.vehicle_state import VehicleParams
 
 _SCENARIOS = {
     "country_road": (CountryRoad, False),
@@ -66,23 +71,9 @@ _TRACKING_OPTIONS = ("lookahead_points",)
 def valid_overrides(name: str) -> tuple[str, ...]:
     """The keyword overrides ``make(name, ...)`` accepts."""
     if name in _MULTI_AGENT:
-        from envs.intersection import IntersectionParams  # lazy: keeps single-agent imports light
-
         return tuple(sorted(f.name for f in dataclasses.fields(IntersectionParams)))
     extra = _TRACKING_OPTIONS if _SCENARIOS[name][0] is Tracking else ()
     return tuple(sorted(_PARAM_FIELDS + _BUILD_OPTIONS + extra))
-
-
-@functools.lru_cache(maxsize=8)
-def _cached_bank(seed: int, size: int, dtype_name: str) -> Track:
-    return make_track_bank(jax.random.PRNGKey(seed), size)
-
-
-def track_bank(seed: int = 0, size: int = DEFAULT_BANK_SIZE) -> Track:
-    """A bank of ``size`` generated tracks (leading axis), cached per (seed, size, dtype)."""
-    if int(size) < 1:
-        raise ValueError(f"track_bank_size must be a positive integer, got {size!r}")
-    return _cached_bank(int(seed), int(size), str(default_float()))
 
 
 def make(name: str, **overrides) -> tuple[Environment, Any]:
@@ -100,18 +91,6 @@ def make(name: str, **overrides) -> tuple[Environment, Any]:
     env_kwargs = {k: overrides.pop(k) for k in _TRACKING_OPTIONS if k in overrides}
     env = cls(discrete=discrete, **env_kwargs)
     return env, racing_params(env, **overrides)
-
-
-def default_racing_params(env: RacingEnv) -> RacingParams:
-    """``env.default_params`` of the racing envs: ``racing_params(env)``, i.e. the default bank of
-    ``make`` (generated once per process), cached per (env configuration, dtype), so that
-    ``env.reset(key)`` works without params as in gymnax."""
-    return _cached_default_params(env, str(default_float()))
-
-
-@functools.lru_cache(maxsize=8)
-def _cached_default_params(env: RacingEnv, dtype_name: str) -> RacingParams:
-    return racing_params(env)
 
 
 def racing_params(env: RacingEnv, **overrides) -> RacingParams:
@@ -140,8 +119,6 @@ def racing_params(env: RacingEnv, **overrides) -> RacingParams:
 
 
 def _make_intersection(name: str, overrides: dict):
-    from envs.intersection import IntersectionEnv, IntersectionParams
-
     valid = valid_overrides(name)
     unknown = sorted(set(overrides) - set(valid))
     if unknown:

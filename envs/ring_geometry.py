@@ -17,7 +17,7 @@ import numpy as np
 from flax import struct
 
 from envs.track import CONE_RADIUS, TINY_SEGMENT, Track
-from envs.vehicle import VEHICLE_HALF_LENGTH, VEHICLE_HALF_WIDTH, VehicleState, world_to_body
+from envs.vehicle_state import VEHICLE_HALF_LENGTH, VEHICLE_HALF_WIDTH, VehicleState, world_to_body
 
 
 @struct.dataclass

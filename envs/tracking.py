@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from envs.core import Box, default_float
 from envs.racing import RacingEnv, RacingParams
 from envs.ring_geometry import TrackView, points_at_arclength
-from envs.vehicle import VehicleState, world_to_body
+from envs.vehicle_state import VehicleState, world_to_body
 
 LOOKAHEAD_POINTS = 25  # paper's override of CarEnv's 50 (spacing 2 m instead of 1 m: params)
 

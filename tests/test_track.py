@@ -11,7 +11,9 @@ import pytest
 import track_reference as R
 
 from envs import track as T
+from envs import track_cones as C
 from envs import track_generator as G
+from envs import track_shape as S
 
 DATA = Path(__file__).parent / "data"
 GOLDEN = ("episode_tracking_public.npz", "episode_country_road_public.npz")
@@ -332,7 +334,7 @@ def test_generated_tracks_are_valid_and_within_bounds(generated_np):
         cum = np.concatenate([[0], np.cumsum(seg)])
         np.testing.assert_allclose(np.asarray(tracks.cumlen[i, :n]), cum, rtol=1e-5, atol=1e-3)
         assert float(tracks.length[i]) == pytest.approx(cum[-1], rel=1e-5)
-        assert float(tracks.length[i]) <= G.MAX_TRACK_LENGTH
+        assert float(tracks.length[i]) <= S.MAX_TRACK_LENGTH
         assert np_is_simple(line)
         present = np.asarray(tracks.cone_present[i])
         count = present.sum()
@@ -349,7 +351,7 @@ def test_cones_lie_on_the_offset_curves(generated_np):
         cones = np.asarray(tracks.cone_xy[i, :count], np.float64)
         dist = np_distance_to_ring(line, cones)
         # on the 3.5 m buffer boundary (trimmed below 3.45 m; chords of the round joins dip a little)
-        assert np.all(dist > 3.5 - G.CONE_TRIM_TOL - 1e-3) and np.all(dist < 3.5 + 1e-2)
+        assert np.all(dist > 3.5 - C.CONE_TRIM_TOL - 1e-3) and np.all(dist < 3.5 + 1e-2)
         # consecutive cones of a ring are ~5 m apart (chords of the 5 m arc-length spacing)
         types = np.asarray(tracks.cone_type[i, :count])
         same_ring = types[1:] == types[:-1]
@@ -487,16 +489,16 @@ def test_generator_under_x64():
 
 def test_push_apart_moves_each_point_by_the_full_deficit():
     points = jnp.asarray([[0.0, 0.0], [5.0, 0.0], [100.0, 100.0]])
-    pushed = np.asarray(jax.jit(G._push_apart)(points, jnp.int32(3)))
+    pushed = np.asarray(jax.jit(S._push_apart)(points, jnp.int32(3)))
     np.testing.assert_allclose(pushed, [[-10.0, 0.0], [15.0, 0.0], [100.0, 100.0]], atol=1e-5)
     # points beyond `count` are left alone
-    pushed = np.asarray(jax.jit(G._push_apart)(points.at[2].set([1.0, 0.0]), jnp.int32(2)))
+    pushed = np.asarray(jax.jit(S._push_apart)(points.at[2].set([1.0, 0.0]), jnp.int32(2)))
     np.testing.assert_allclose(pushed[2], [1.0, 0.0])
 
 
 def test_convex_hull_is_clockwise_and_contains_all_points():
     rng = np.random.default_rng(1)
-    hull_fn = jax.jit(G._convex_hull)
+    hull_fn = jax.jit(S._convex_hull)
     for count in (3, 10, 20):
         points = rng.uniform(0, 150, size=(20, 2))
         ids, h, ok = hull_fn(jnp.asarray(points, jnp.float32), jnp.int32(count))
@@ -516,13 +518,13 @@ def test_convex_hull_is_clockwise_and_contains_all_points():
 
 def test_spline_passes_through_control_points_and_reproduces_lines():
     rng = np.random.default_rng(2)
-    control = rng.uniform(0, 150, size=(G.MAX_CONTROL_POINTS, 2))
-    spline = jax.jit(G._catmull_rom)
+    control = rng.uniform(0, 150, size=(S.MAX_CONTROL_POINTS, 2))
+    spline = jax.jit(S._catmull_rom)
     samples = np.asarray(spline(jnp.asarray(control, jnp.float32), jnp.int32(12)))
     for j in range(12):
         np.testing.assert_allclose(samples[j, 0], control[(j - 1) % 12], atol=1e-4)
         np.testing.assert_allclose(samples[j, -1], control[j], atol=1e-4)
-    pyramid = jax.jit(G._barry_goldman)  # one compile: every call below has 12 rows
+    pyramid = jax.jit(S._barry_goldman)  # one compile: every call below has 12 rows
     c = [jnp.asarray(np.roll(control[:12], -k, axis=0), jnp.float32) for k in range(-2, 3)]
     # the Barry-Goldman pyramid itself interpolates its middle points (before the exact snap)
     np.testing.assert_allclose(
@@ -550,8 +552,8 @@ def test_simplicity_check_detects_a_figure_eight():
     angle = np.linspace(0, 2 * np.pi, 200, endpoint=False) + 0.0123  # crossing not at a vertex
     circle = np.stack([50 * np.cos(angle), 50 * np.sin(angle)], axis=1)
     eight = np.stack([50 * np.sin(angle), 25 * np.sin(2 * angle)], axis=1)
-    check = jax.jit(G._is_simple)
+    check = jax.jit(S._is_simple)
     for curve, simple in ((circle, True), (eight, False)):
-        padded = np.concatenate([curve, np.repeat(curve[:1], G.MAX_DEDUP_POINTS - 200, axis=0)])
+        padded = np.concatenate([curve, np.repeat(curve[:1], S.MAX_DEDUP_POINTS - 200, axis=0)])
         assert bool(check(jnp.asarray(padded, jnp.float32), jnp.int32(200))) is simple
         assert np_is_simple(curve) is simple

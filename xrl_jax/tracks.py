@@ -15,7 +15,9 @@ import numpy as np
 
 import envs
 import envs.track
+import envs.track_cones
 import envs.track_generator
+import envs.track_shape
 from envs.racing import with_bank
 from envs.track import Track
 from envs.track_generator import make_track_bank
@@ -28,9 +30,10 @@ def cache_dir() -> Path:
 
 
 def _generator_fingerprint() -> str:
-    """A hash of the generator's sources: the track type and constants, and the generator itself."""
+    """A hash of the generator's sources: the track type and constants, and the generator itself
+    (centre line, cones, and the rejection loop that joins them)."""
     digest = hashlib.sha256()
-    for module in (envs.track, envs.track_generator):
+    for module in (envs.track, envs.track_shape, envs.track_cones, envs.track_generator):
         digest.update(Path(module.__file__).read_bytes())
     return digest.hexdigest()[:12]
 
