@@ -28,7 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import envs
+from envs import hand_controller
 from xrl_jax import config
+from xrl_jax.agents import make_agent
+from xrl_jax.sets import Packing
+from xrl_jax.tracks import cached_track_bank, racing_env
 
 SCENARIOS = ("tracking", "country_road", "intersection")
 OCCUPANCY_FILE = Path(__file__).resolve().parent.parent / "docs" / "set_occupancy.json"
@@ -41,9 +46,6 @@ DEFAULTS = {
 
 
 def _racing_observations(scenario: str, num_tracks: int, steps: int, seed: int) -> dict[str, Any]:
-    from envs import hand_controller
-    from xrl_jax.tracks import cached_track_bank, racing_env
-
     env, params = racing_env(scenario, cached_track_bank(1000 + seed, num_tracks))
     tables = getattr(params, "tables", None)
 
@@ -75,8 +77,6 @@ def _racing_observations(scenario: str, num_tracks: int, steps: int, seed: int) 
 
 
 def _intersection_observations(num_envs: int, steps: int, seed: int) -> dict[str, Any]:
-    import envs
-
     env, params = envs.make("intersection")  # the training curriculum
 
     def rollout(key):
@@ -226,8 +226,6 @@ def fallback_probability(agent, batch_size: int, members: int = 1, table: dict |
     than its packed rows: the larger of the Deep Set's rule and the mixture actor's (whose rows are
     the slots that carry weight — all of an empty set — plus the neutral object), by the measured
     occupancy of the agent's scenario."""
-    from xrl_jax.sets import Packing
-
     config = agent.config
     if config.packed_rows is None or config.dense_sets:
         return 0.0
@@ -254,8 +252,6 @@ def update_cost(agent, batch_size: int, members: int = 1, table: dict | None = N
     """FLOPs of one update as it runs: ``dense`` (every slot), ``packed`` (the packed computation
     alone), the ``fallback_probability`` and the ``expected`` mix of the two (``packed`` and the
     probability are absent, 0, for an agent that computes on every slot)."""
-    from xrl_jax.agents import make_agent
-
     config, example = agent.config, agent.dummy_observation()
     dense = update_flops(make_agent(config.replace(dense_sets=True), example, agent.action_size), batch_size)
     if config.packed_rows is None or config.dense_sets:
