@@ -26,6 +26,13 @@ def cli(tmp_path_factory):
     return load_script("explain", "explain_cli")
 
 
+def checkpoint_meta(cfg) -> dict:
+    """What the trainer stores with a checkpoint of seed 0 at step 0 (the readers check it)."""
+    from xrl_jax.train.restore import config_fingerprint
+
+    return {"next_chunk": 0, "seeds": [0], "step": 0, "config": config_fingerprint(cfg)}
+
+
 def make_run_folder(folder: Path, env: str, algo: str) -> Path:
     """A smoke-preset results folder with one seed whose checkpoint is the initial run state."""
     from xrl_jax.checkpoint import save_checkpoint
@@ -37,7 +44,7 @@ def make_run_folder(folder: Path, env: str, algo: str) -> Path:
     (folder / "config.json").write_text(json.dumps(config_document(cfg, ["test"])))
     trainer = get_trainer(cfg)
     state = trainer.init(jnp.asarray(cfg.seed, jnp.int32), jnp.arange(1, dtype=jnp.int32))
-    save_checkpoint(folder / "checkpoints" / "group_0", 0, state, {"next_chunk": 0, "seeds": [0], "step": 0})
+    save_checkpoint(folder / "checkpoints" / "group_0", 0, state, checkpoint_meta(cfg))
     return folder
 
 
@@ -179,7 +186,7 @@ def make_intersection_run_folder(folder: Path, algo: str) -> Path:
     ego_obs = {k: jnp.zeros(v.shape, v.dtype) for k, v in space.spaces.items()}
     agent_state = jax.jit(trainer.agent.init)(jax.random.PRNGKey(cfg.seed), ego_obs)
     state = jax.tree.map(zeros, abstract).replace(agent=jax.tree.map(lambda x: x[None], agent_state))
-    save_checkpoint(folder / "checkpoints" / "group_0", 0, state, {"next_chunk": 0, "seeds": [0], "step": 0})
+    save_checkpoint(folder / "checkpoints" / "group_0", 0, state, checkpoint_meta(cfg))
     return folder
 
 

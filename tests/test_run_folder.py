@@ -143,3 +143,28 @@ def test_sizes_read_at_any_scale():
     assert [resources.format_duration(s) for s in (42, 780, 5.2 * 3600, 23 * 86400)] == [
         "42 s", "13 min", "5.2 h", "23 days",
     ]  # fmt: skip
+
+
+def test_the_folders_documents_are_read_with_one_line_errors(tmp_path):
+    """A garbage plan.json or config.json (a papercut: 34-line JSONDecodeError tracebacks) is one
+    RunFolderError line naming the file; a folder without a plan is one group on one device."""
+    from xrl_jax.runs.folder import read_checkpoint_plan, read_run_config
+
+    assert read_checkpoint_plan(tmp_path, 3) == ([[0, 1, 2]], 1)
+    (tmp_path / "plan.json").write_text("{not json")
+    with pytest.raises(RunFolderError, match=r"plan\.json is unreadable \(the run's seed groups\)") as err:
+        read_checkpoint_plan(tmp_path, 3)
+    assert "\n" not in str(err.value)
+    (tmp_path / "plan.json").write_text('{"groups": 3}')
+    with pytest.raises(RunFolderError, match=r"plan\.json does not describe the seed groups"):
+        read_checkpoint_plan(tmp_path, 3)
+    (tmp_path / "plan.json").write_text('{"groups": [[0, 1], [2]], "devices": 2}')
+    assert read_checkpoint_plan(tmp_path, 3) == ([[0, 1], [2]], 2)
+    with pytest.raises(RunFolderError, match=r"is not a results folder \(no config\.json\)"):
+        read_run_config(tmp_path)
+    (tmp_path / "config.json").write_text("[1, 2]")
+    with pytest.raises(RunFolderError, match=r"config\.json is not a JSON object"):
+        read_run_config(tmp_path)
+    (tmp_path / "config.json").write_text('{"config": {"env": "nowhere"}}')
+    with pytest.raises(RunFolderError, match=r"config\.json is unreadable or from another version"):
+        read_run_config(tmp_path)

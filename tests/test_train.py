@@ -301,3 +301,29 @@ def test_the_env_step_is_traced_once_for_the_chunk_and_once_for_evaluation(tmp_p
     assert T.train(cfg, tmp_path / "run", resume=True, **quiet)["complete"]
     assert T.train(cfg.replace(seed=3), tmp_path / "other", **quiet)["complete"]
     assert counting.step_traces == 2
+
+
+def test_a_resume_says_what_it_could_not_verify_or_find(tmp_path):
+    """Papercuts of issue 28: a resume whose checkpoint has no digest manifest lists it in the summary
+    (it was only checked for finiteness), and a resume that finds no checkpoint at all (deleted, or
+    every one set aside as damaged) warns that it starts again from step 0 instead of doing so silently."""
+    import shutil
+
+    prepare_cache(tmp_path / "cache")
+    cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=2)
+    warnings = []
+    quiet = {"progress": False, "log": lambda *_: None, "warn": warnings.append, "trainer": T.make_train(cfg)}
+    assert T.train(cfg, tmp_path / "run", stop_after_chunks=2, **quiet) is None
+    shutil.copytree(tmp_path / "run", tmp_path / "lost")
+    for manifest in (tmp_path / "run" / "checkpoints").rglob("xrl_manifest.json"):
+        manifest.unlink()
+    summary = T.train(cfg, tmp_path / "run", resume=True, **quiet)
+    assert summary["complete"] and summary["unverified_checkpoints"] == [{"group": 0, "step": 128}]
+    shutil.rmtree(tmp_path / "lost" / "checkpoints")
+    warnings.clear()
+    assert "unverified_checkpoints" not in T.train(cfg, tmp_path / "lost", resume=True, **quiet)
+    assert (
+        len(warnings) == 1
+        and "has no checkpoint" in warnings[0]
+        and "starts again from step 0" in warnings[0]
+    )
