@@ -26,11 +26,13 @@ def cli(tmp_path_factory):
     return load_script("explain", "explain_cli")
 
 
-def checkpoint_meta(cfg) -> dict:
-    """What the trainer stores with a checkpoint of seed 0 at step 0 (the readers check it)."""
+def checkpoint_meta(cfg, step: int | None = None) -> dict:
+    """What the trainer stores with seed 0's checkpoint (the readers check it); by default the
+    final step's, so that the folder reads as a finished run."""
     from xrl_jax.train.restore import config_fingerprint
 
-    return {"next_chunk": 0, "seeds": [0], "step": 0, "config": config_fingerprint(cfg)}
+    step = cfg.total_steps if step is None else step
+    return {"next_chunk": cfg.num_chunks, "seeds": [0], "step": step, "config": config_fingerprint(cfg)}
 
 
 def make_run_folder(folder: Path, env: str, algo: str) -> Path:
@@ -44,7 +46,7 @@ def make_run_folder(folder: Path, env: str, algo: str) -> Path:
     (folder / "config.json").write_text(json.dumps(config_document(cfg, ["test"])))
     trainer = get_trainer(cfg)
     state = trainer.init(jnp.asarray(cfg.seed, jnp.int32), jnp.arange(1, dtype=jnp.int32))
-    save_checkpoint(folder / "checkpoints" / "group_0", 0, state, checkpoint_meta(cfg))
+    save_checkpoint(folder / "checkpoints" / "group_0", cfg.total_steps, state, checkpoint_meta(cfg))
     return folder
 
 
@@ -137,6 +139,25 @@ def test_bad_input_fails_with_one_line(cli, xdsac_run, tmp_path, capsys):
     assert not png.exists()
 
 
+def test_an_unfinished_run_is_named_as_such(cli, xdsac_run, tmp_path, capsys):
+    """A run that stopped (or diverged) early is explained from its newest good checkpoint, and the
+    figure's maker is told which step that is, not silently handed an early agent."""
+    import shutil
+
+    from xrl_jax.checkpoint import save_checkpoint
+    from xrl_jax.runs import read_run_config
+    from xrl_jax.train.restore import shared_trainer
+
+    cfg = read_run_config(xdsac_run)
+    early = tmp_path / "early"
+    early.mkdir()
+    shutil.copy(xdsac_run / "config.json", early / "config.json")
+    state = shared_trainer(cfg).init(jnp.asarray(cfg.seed, jnp.int32), jnp.arange(1, dtype=jnp.int32))
+    save_checkpoint(early / "checkpoints" / "group_0", 64, state, checkpoint_meta(cfg, step=64))
+    status, _, err = call(cli, capsys, "--run", early, "--step", 1, "--out", tmp_path / "e.png", *SMALL)
+    assert status == 0 and f"using the checkpoint at step 64 of {cfg.total_steps}" in err
+
+
 @pytest.mark.slow
 def test_cli_on_a_trained_smoke_run(cli, tmp_path, capsys):
     run = load_script("run", "run_cli_for_explain")
@@ -186,7 +207,7 @@ def make_intersection_run_folder(folder: Path, algo: str) -> Path:
     ego_obs = {k: jnp.zeros(v.shape, v.dtype) for k, v in space.spaces.items()}
     agent_state = jax.jit(trainer.agent.init)(jax.random.PRNGKey(cfg.seed), ego_obs)
     state = jax.tree.map(zeros, abstract).replace(agent=jax.tree.map(lambda x: x[None], agent_state))
-    save_checkpoint(folder / "checkpoints" / "group_0", 0, state, checkpoint_meta(cfg))
+    save_checkpoint(folder / "checkpoints" / "group_0", cfg.total_steps, state, checkpoint_meta(cfg))
     return folder
 
 
