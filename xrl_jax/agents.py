@@ -45,16 +45,15 @@ stochastically, XDSAC greedily. Each is marked ``§7.2.n`` where it happens.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import optax
-from flax import struct
 
 from xrl_jax import losses
+from xrl_jax.agent_state import AgentState, HyperParams, adam, adam_step, make_hparams
 from xrl_jax.config import AgentConfig
 from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture, squashed_gaussian
 from xrl_jax.networks import Networks, ObservationShape, find_set_key, make_networks, set_packing
@@ -62,60 +61,6 @@ from xrl_jax.networks import Networks, ObservationShape, find_set_key, make_netw
 Array = jax.Array
 ACT_MODES = ("train", "eval", "deterministic")
 BATCH_KEYS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
-
-
-@struct.dataclass
-class HyperParams:
-    """Traced optimisation constants (scalars; vmappable for sweeps, e.g. κ in paper Fig. 8).
-
-    ``init_log_alpha`` is where log α starts, also after a re-initialisation, so that a swept
-    initial α survives one."""
-
-    actor_lr: Array
-    critic_lr: Array
-    alpha_lr: Array
-    gamma: Array
-    tau: Array
-    kappa: Array
-    target_entropy: Array
-    init_log_alpha: Array
-
-
-@struct.dataclass
-class AgentState:
-    """Everything that changes during training; a pytree with an optional leading seed axis."""
-
-    actor_params: Any
-    critic_params: Any
-    target_critic_params: Any
-    log_alpha: Array
-    actor_opt_state: Any
-    critic_opt_state: Any
-    alpha_opt_state: Any
-    step: Array
-    hparams: HyperParams
-
-    @property
-    def alpha(self) -> Array:
-        return jnp.exp(self.log_alpha)
-
-
-def _float(x) -> Array:
-    return jnp.asarray(x, dtype=jnp.result_type(float))
-
-
-def make_hparams(config: AgentConfig, action_size: int) -> HyperParams:
-    """The traced part of a config as a pytree of scalars (default float dtype)."""
-    return HyperParams(
-        actor_lr=_float(config.actor_lr),
-        critic_lr=_float(config.critic_lr),
-        alpha_lr=_float(config.resolved_alpha_lr()),
-        gamma=_float(config.gamma),
-        tau=_float(config.tau),
-        kappa=_float(config.kappa),
-        target_entropy=_float(config.resolved_target_entropy(action_size)),
-        init_log_alpha=_float(math.log(config.init_alpha)),
-    )
 
 
 def observation_shape(obs_example: Mapping[str, Any]) -> ObservationShape:
@@ -128,13 +73,6 @@ def observation_shape(obs_example: Mapping[str, Any]) -> ObservationShape:
             f"got {tuple(objects.shape)} and {tuple(state.shape)}"
         )
     return ObservationShape(set_key, int(objects.shape[0]), int(objects.shape[1]), int(state.shape[0]))
-
-
-def _adam(clip_norm: float | None) -> optax.GradientTransformation:
-    """Adam without the learning-rate scaling (applied from the traced hparams); optional clipping."""
-    if clip_norm is None:
-        return optax.scale_by_adam()
-    return optax.chain(optax.clip_by_global_norm(clip_norm), optax.scale_by_adam())
 
 
 def _as_float_mask(x: Array) -> Array:
@@ -176,15 +114,15 @@ class Agent:
     def _actor_tx(self) -> optax.GradientTransformation:
         # Reference (§1.4): with clip_norm set, SAC clips only the critic; DSAC/XSAC/XDSAC clip actor and
         # critic; α is never clipped. The intersection SAC preset sets clip_norm=None: no clipping at all.
-        return _adam(None if self.algo == "sac" else self.config.clip_norm)
+        return adam(None if self.algo == "sac" else self.config.clip_norm)
 
     @property
     def _critic_tx(self) -> optax.GradientTransformation:
-        return _adam(self.config.clip_norm)
+        return adam(self.config.clip_norm)
 
     @property
     def _alpha_tx(self) -> optax.GradientTransformation:
-        return _adam(None)
+        return adam(None)
 
     def dummy_observation(self, batch_shape: tuple[int, ...] = ()) -> dict[str, Array]:
         return self.networks.dummy_observation(batch_shape)
@@ -397,7 +335,7 @@ class Agent:
         (critic_loss, critic_aux), critic_grads = jax.value_and_grad(self.critic_loss, has_aux=True)(
             state.critic_params, state, batch, target_key
         )
-        critic_params, critic_opt_state = _adam_step(
+        critic_params, critic_opt_state = adam_step(
             self._critic_tx, critic_grads, state.critic_opt_state, state.critic_params, hp.critic_lr
         )
         state_new_critic = state.replace(critic_params=critic_params)
@@ -405,7 +343,7 @@ class Agent:
         (actor_loss, actor_aux), actor_grads = jax.value_and_grad(self.actor_loss, has_aux=True)(
             state.actor_params, state_new_critic, batch, actor_key
         )
-        actor_params, actor_opt_state = _adam_step(
+        actor_params, actor_opt_state = adam_step(
             self._actor_tx, actor_grads, state.actor_opt_state, state.actor_params, hp.actor_lr
         )
 
@@ -416,7 +354,7 @@ class Agent:
             (alpha_loss, _), alpha_grad = jax.value_and_grad(losses.entropy_coef_loss, has_aux=True)(
                 state.log_alpha, actor_aux["entropy"], hp.target_entropy
             )
-            log_alpha, alpha_opt_state = _adam_step(
+            log_alpha, alpha_opt_state = adam_step(
                 self._alpha_tx, alpha_grad, state.alpha_opt_state, state.log_alpha, hp.alpha_lr
             )
             metrics["loss_ent_coef"] = alpha_loss
@@ -489,13 +427,6 @@ class Agent:
                     raise ValueError(
                         f"batch[{name!r}][{k!r}] must have shape {shape}, got {jnp.shape(obs[k])}"
                     )
-
-
-def _adam_step(tx: optax.GradientTransformation, grads, opt_state, params, lr: Array):
-    """params ← params − lr·Adam(grads): optax.adam with a traced learning rate."""
-    updates, opt_state = tx.update(grads, opt_state, params)
-    params = jax.tree_util.tree_map(lambda p, u: p - lr * u, params, updates)
-    return params, opt_state
 
 
 def make_agent(
