@@ -39,83 +39,36 @@ per-action *minimum*; XSAC actor samples every component and evaluates each samp
 full mixture; κ·H(w) subtracted; α learned on log α with Adam at the critic lr from α₀ = 0.1,
 using the actor step's pre-update log-probs; the update order critic → actor (new critic) → α →
 Polyak; ε = 5 % random actions for the discrete agents at training time; XSAC evaluated
-stochastically, XDSAC greedily. Each is marked ``§7.2.n`` where it happens.
+stochastically, XDSAC greedily. Each is marked ``§7.2.n`` where it happens: here, in
+:mod:`xrl_jax.action_spaces` or in :mod:`xrl_jax.policies`.
+
+The agent itself tells only continuous from discrete actions (``Agent.action_space``, from
+:mod:`xrl_jax.action_spaces`: random actions, ε-exploration, the TD target and the critics' values);
+everything a mixture adds comes with the policy that the networks build next to their actor
+(``networks.policy``, :mod:`xrl_jax.policies`: the distribution, greedy and sampled actions, the actor loss).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
+import functools
 from collections.abc import Mapping
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import optax
-from flax import struct
 
 from xrl_jax import losses
+from xrl_jax.action_spaces import ContinuousActions, DiscreteActions
+from xrl_jax.agent_state import AgentState, HyperParams, adam, adam_step, make_hparams
 from xrl_jax.config import AgentConfig
-from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture, squashed_gaussian
+from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture
 from xrl_jax.networks import Networks, ObservationShape, find_set_key, make_networks, set_packing
 
 Array = jax.Array
 ACT_MODES = ("train", "eval", "deterministic")
 BATCH_KEYS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
-
-
-@struct.dataclass
-class HyperParams:
-    """Traced optimisation constants (scalars; vmappable for sweeps, e.g. κ in paper Fig. 8).
-
-    ``init_log_alpha`` is where log α starts, also after a re-initialisation, so that a swept
-    initial α survives one."""
-
-    actor_lr: Array
-    critic_lr: Array
-    alpha_lr: Array
-    gamma: Array
-    tau: Array
-    kappa: Array
-    target_entropy: Array
-    init_log_alpha: Array
-
-
-@struct.dataclass
-class AgentState:
-    """Everything that changes during training; a pytree with an optional leading seed axis."""
-
-    actor_params: Any
-    critic_params: Any
-    target_critic_params: Any
-    log_alpha: Array
-    actor_opt_state: Any
-    critic_opt_state: Any
-    alpha_opt_state: Any
-    step: Array
-    hparams: HyperParams
-
-    @property
-    def alpha(self) -> Array:
-        return jnp.exp(self.log_alpha)
-
-
-def _float(x) -> Array:
-    return jnp.asarray(x, dtype=jnp.result_type(float))
-
-
-def make_hparams(config: AgentConfig, action_size: int) -> HyperParams:
-    """The traced part of a config as a pytree of scalars (default float dtype)."""
-    return HyperParams(
-        actor_lr=_float(config.actor_lr),
-        critic_lr=_float(config.critic_lr),
-        alpha_lr=_float(config.resolved_alpha_lr()),
-        gamma=_float(config.gamma),
-        tau=_float(config.tau),
-        kappa=_float(config.kappa),
-        target_entropy=_float(config.resolved_target_entropy(action_size)),
-        init_log_alpha=_float(math.log(config.init_alpha)),
-    )
 
 
 def observation_shape(obs_example: Mapping[str, Any]) -> ObservationShape:
@@ -130,13 +83,6 @@ def observation_shape(obs_example: Mapping[str, Any]) -> ObservationShape:
     return ObservationShape(set_key, int(objects.shape[0]), int(objects.shape[1]), int(state.shape[0]))
 
 
-def _adam(clip_norm: float | None) -> optax.GradientTransformation:
-    """Adam without the learning-rate scaling (applied from the traced hparams); optional clipping."""
-    if clip_norm is None:
-        return optax.scale_by_adam()
-    return optax.chain(optax.clip_by_global_norm(clip_norm), optax.scale_by_adam())
-
-
 def _as_float_mask(x: Array) -> Array:
     return jnp.asarray(x).astype(jnp.result_type(float))
 
@@ -149,6 +95,17 @@ class Agent:
     networks: Networks
     obs_shape: ObservationShape
     action_size: int  # A (continuous) or N (discrete)
+    action_space: ContinuousActions | DiscreteActions = dataclasses.field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        # The one place where the agent tells the algorithms apart: continuous or discrete actions.
+        # What a mixture adds comes with the policy of its actor (``networks.policy``).
+        cfg = self.config
+        if cfg.is_discrete:
+            space = DiscreteActions(self.action_size, cfg.resolved_epsilon_random())
+        else:
+            space = ContinuousActions(self.action_size)
+        object.__setattr__(self, "action_space", space)
 
     # ---- static helpers ---------------------------------------------------------------------
     @property
@@ -176,15 +133,15 @@ class Agent:
     def _actor_tx(self) -> optax.GradientTransformation:
         # Reference (§1.4): with clip_norm set, SAC clips only the critic; DSAC/XSAC/XDSAC clip actor and
         # critic; α is never clipped. The intersection SAC preset sets clip_norm=None: no clipping at all.
-        return _adam(None if self.algo == "sac" else self.config.clip_norm)
+        return adam(self.config.clip_norm if self.networks.policy.clips_actor_grads else None)
 
     @property
     def _critic_tx(self) -> optax.GradientTransformation:
-        return _adam(self.config.clip_norm)
+        return adam(self.config.clip_norm)
 
     @property
     def _alpha_tx(self) -> optax.GradientTransformation:
-        return _adam(None)
+        return adam(None)
 
     def dummy_observation(self, batch_shape: tuple[int, ...] = ()) -> dict[str, Array]:
         return self.networks.dummy_observation(batch_shape)
@@ -208,8 +165,8 @@ class Agent:
             )
         actor_key, critic_key = jax.random.split(key)
         actor_params = self.networks.actor.init(actor_key, obs_example)
-        critic_args = (obs_example,) if self.is_discrete else (obs_example, self.networks.dummy_action())
-        critic_params = self.networks.critic.init(critic_key, *critic_args)
+        critic_inputs = self.action_space.critic_inputs(obs_example, self.networks.dummy_action())
+        critic_params = self.networks.critic.init(critic_key, *critic_inputs)
         if hparams is None:
             hparams = make_hparams(self.config, self.action_size)
         log_alpha = jnp.asarray(hparams.init_log_alpha)
@@ -238,18 +195,7 @@ class Agent:
 
     def policy_from_output(self, out: Any) -> SquashedGaussianMixture | CategoricalMixture:
         """The distribution of :meth:`policy` from an already computed actor output."""
-        cfg = self.config
-        log_std = dict(log_std_min=cfg.resolved_log_std_min(), log_std_max=cfg.log_std_max)
-        if self.algo == "sac":
-            return squashed_gaussian(out.mean, out.log_std, **log_std)
-        if self.algo == "dsac":
-            return CategoricalMixture.create(out[..., None, :])
-        logits = None if cfg.uniform_mixture else out.mixture_logits
-        if self.algo == "xsac":
-            return SquashedGaussianMixture.from_objects(
-                out.means, out.log_stds, logits, out.present, **log_std
-            )
-        return CategoricalMixture.create(out.logits, logits, out.present)
+        return self.networks.policy.distribution(out)
 
     def actor_output(self, actor_params: Any, obs: Mapping[str, Array]) -> Any:
         """Raw actor outputs (``networks`` dataclasses: not masked, log σ not clipped), for explanations."""
@@ -257,9 +203,7 @@ class Agent:
 
     def random_action(self, key: Array, batch_shape: tuple[int, ...] = ()) -> Array:
         """Uniform random action (warm-up, ε-exploration)."""
-        if self.is_discrete:
-            return jax.random.randint(key, batch_shape, 0, self.action_size, jnp.int32)
-        return jax.random.uniform(key, (*batch_shape, self.action_size), jnp.result_type(float), -1.0, 1.0)
+        return self.action_space.random(key, batch_shape)
 
     def act(self, key: Array, state: AgentState, obs: Mapping[str, Array], mode: str = "train") -> Array:
         """An action for `obs` (any leading batch axes).
@@ -274,31 +218,12 @@ class Agent:
         """
         if mode not in ACT_MODES:
             raise ValueError(f"unknown act mode {mode!r}; valid modes: {', '.join(ACT_MODES)}")
-        params = state.actor_params
-        algo = self.algo
+        params, policy = state.actor_params, self.networks.policy
         sample_key, explore_key, coin_key = jax.random.split(key, 3)
-        greedy = mode == "deterministic" or (mode == "eval" and algo != "xsac")
-        if greedy:
-            if algo == "sac":
-                return jnp.tanh(self.networks.actor.apply(params, obs).mean)
-            if algo == "dsac":
-                return jnp.argmax(self.networks.actor.apply(params, obs), axis=-1).astype(jnp.int32)
-            if algo == "xsac":
-                return self.policy(params, obs).approximate_mode()
-            return self.policy(params, obs).mode().astype(jnp.int32)
-        if self.config.is_mixture and not self.config.uniform_mixture:
-            action = self.networks.actor.apply(
-                params, obs, sample_key, method=self.networks.actor.sample_fast
-            ).action
-        else:
-            action = self.policy(params, obs).sample(sample_key)
-        if self.is_discrete:
-            action = action.astype(jnp.int32)
-            eps = self.config.resolved_epsilon_random()
-            if mode == "train" and eps > 0:
-                explore = jax.random.uniform(coin_key, action.shape) < eps
-                action = jnp.where(explore, self.random_action(explore_key, action.shape), action)
-        return action
+        if mode == "deterministic" or (mode == "eval" and not policy.stochastic_eval):
+            return policy.greedy(self.networks.actor.apply(params, obs))
+        action = policy.sample(self.networks.actor, params, obs, sample_key)
+        return self.action_space.explore(action, mode, explore_key, coin_key)
 
     # ---- losses (params + state + batch + key -> (loss, aux)) -------------------------------
     def critic_loss(
@@ -314,20 +239,11 @@ class Agent:
         discount = hp.gamma * (1.0 - terminated)  # §7.2.8: done = terminated only
         weight = 1.0 - truncated if self.config.truncation == "drop" else None
         next_pi = self.policy(state.actor_params, batch["next_obs"])
-        critic = self.networks.critic
-        if self.is_discrete:
-            next_q = critic.apply(state.target_critic_params, batch["next_obs"])
-            target = losses.discrete_td_target(reward, discount, next_q, next_pi.probs(), alpha)
-            q_all = critic.apply(critic_params, batch["obs"])
-            action = jnp.asarray(batch["action"]).astype(jnp.int32)
-            index = jnp.broadcast_to(action[None, :, None], (*q_all.shape[:-1], 1))
-            q = jnp.take_along_axis(q_all, index, axis=-1)[..., 0]
-        else:
-            # one fresh next-action sample per transition from the full (pre-update) policy (§3.3)
-            next_action, next_log_prob = next_pi.sample_and_log_prob(key)
-            next_q = critic.apply(state.target_critic_params, batch["next_obs"], next_action)
-            target = losses.continuous_td_target(reward, discount, next_q, next_log_prob, alpha)
-            q = critic.apply(critic_params, batch["obs"], batch["action"])
+        critic, actions = self.networks.critic, self.action_space
+        target = actions.td_target(
+            critic, state.target_critic_params, batch["next_obs"], next_pi, reward, discount, alpha, key
+        )
+        q = actions.taken_q(critic, critic_params, batch["obs"], batch["action"])
         loss, aux = losses.critic_loss(q, target, self.config.critic_loss, weight)
         aux = {**aux, "q_val_min": jnp.min(target), "q_val_max": jnp.max(target)}
         return loss, aux
@@ -337,36 +253,12 @@ class Agent:
     ) -> tuple[Array, dict[str, Array]]:
         """Actor loss with the critics in `state` (the **updated** online critics in `update`,
         §7.2.7) and the pre-update α; only `actor_params` is differentiated."""
-        hp = state.hparams
         alpha = state.alpha
         obs = batch["obs"]
         critic_params = jax.lax.stop_gradient(state.critic_params)
-        critic = self.networks.critic
+        critic = functools.partial(self.networks.critic.apply, critic_params, obs)  # critic(*action_args)
         out = self.networks.actor.apply(actor_params, obs)
-        pi = self.policy_from_output(out)
-        if self.algo == "sac":
-            action, log_prob = pi.sample_and_log_prob(key)  # reparameterised (differentiable in μ, σ)
-            q = critic.apply(critic_params, obs, action)
-            return losses.sac_actor_loss(log_prob, q, alpha)
-        if self.algo == "dsac":
-            q = critic.apply(critic_params, obs)
-            return losses.dsac_actor_loss(pi.probs(), q, alpha)  # §7.2.2: mean of critics
-        if self.algo == "xsac":
-            # §7.2.1: one reparameterised sample per component, each scored under the full mixture
-            # (floored density), Q = min of the updated critics, weights keep their gradient.
-            actions, log_probs = pi.sample_per_component(
-                key, floor_density=True, packing=self.networks.component_packing
-            )
-            q = critic.apply(critic_params, obs, actions, pi.weighted)  # F(s) once, heads per component
-            return losses.xsac_actor_loss(pi.weights, log_probs, q, alpha, hp.kappa)
-        q = critic.apply(critic_params, obs)
-        loss, aux = losses.xdsac_actor_loss(pi.probs(), pi.weights, q, alpha, hp.kappa)
-        present = out.present.astype(loss.dtype)
-        centred = jnp.where(out.present, out.mixture_logits, 0.0)
-        aux["mean_mixture_logits"] = jax.lax.stop_gradient(
-            jnp.sum(centred) / jnp.maximum(jnp.sum(present), 1.0)
-        )
-        return loss, aux
+        return self.networks.policy.actor_loss(out, critic, alpha, state.hparams.kappa, key)
 
     # ---- one train step ---------------------------------------------------------------------
     def _scheduled_hparams(self, state: AgentState) -> HyperParams:
@@ -397,7 +289,7 @@ class Agent:
         (critic_loss, critic_aux), critic_grads = jax.value_and_grad(self.critic_loss, has_aux=True)(
             state.critic_params, state, batch, target_key
         )
-        critic_params, critic_opt_state = _adam_step(
+        critic_params, critic_opt_state = adam_step(
             self._critic_tx, critic_grads, state.critic_opt_state, state.critic_params, hp.critic_lr
         )
         state_new_critic = state.replace(critic_params=critic_params)
@@ -405,7 +297,7 @@ class Agent:
         (actor_loss, actor_aux), actor_grads = jax.value_and_grad(self.actor_loss, has_aux=True)(
             state.actor_params, state_new_critic, batch, actor_key
         )
-        actor_params, actor_opt_state = _adam_step(
+        actor_params, actor_opt_state = adam_step(
             self._actor_tx, actor_grads, state.actor_opt_state, state.actor_params, hp.actor_lr
         )
 
@@ -416,7 +308,7 @@ class Agent:
             (alpha_loss, _), alpha_grad = jax.value_and_grad(losses.entropy_coef_loss, has_aux=True)(
                 state.log_alpha, actor_aux["entropy"], hp.target_entropy
             )
-            log_alpha, alpha_opt_state = _adam_step(
+            log_alpha, alpha_opt_state = adam_step(
                 self._alpha_tx, alpha_grad, state.alpha_opt_state, state.log_alpha, hp.alpha_lr
             )
             metrics["loss_ent_coef"] = alpha_loss
@@ -470,7 +362,7 @@ class Agent:
         for name in ("terminated", "truncated"):
             if jnp.shape(batch[name]) != (size,):
                 raise ValueError(f"batch[{name!r}] must have shape ({size},), got {jnp.shape(batch[name])}")
-        action_shape = (size,) if self.is_discrete else (size, self.action_size)
+        action_shape = self.action_space.shape((size,))
         if jnp.shape(batch["action"]) != action_shape:
             raise ValueError(
                 f"batch['action'] must have shape {action_shape} for {self.algo}, "
@@ -489,13 +381,6 @@ class Agent:
                     raise ValueError(
                         f"batch[{name!r}][{k!r}] must have shape {shape}, got {jnp.shape(obs[k])}"
                     )
-
-
-def _adam_step(tx: optax.GradientTransformation, grads, opt_state, params, lr: Array):
-    """params ← params − lr·Adam(grads): optax.adam with a traced learning rate."""
-    updates, opt_state = tx.update(grads, opt_state, params)
-    params = jax.tree_util.tree_map(lambda p, u: p - lr * u, params, updates)
-    return params, opt_state
 
 
 def make_agent(

@@ -56,6 +56,13 @@ from xrl_jax.extractors import (
     present_mask,
     tracking_index_feature,
 )
+from xrl_jax.policies import (
+    CategoricalMixturePolicy,
+    CategoricalPolicy,
+    GaussianMixturePolicy,
+    Policy,
+    SquashedGaussianPolicy,
+)
 from xrl_jax.sets import Packing
 
 Array = jax.Array
@@ -121,6 +128,7 @@ class Networks:
     action_size: int
     actor: nn.Module
     critic: nn.Module
+    policy: Policy  # how the actor's output becomes π(·|s), its actions and its actor loss
     component_packing: Packing | None = None  # XSAC: its K component actions (critic heads, eq. 9 pairs)
 
     @property
@@ -150,21 +158,44 @@ class Networks:
 def make_networks(
     config: AgentConfig, obs_shape: ObservationShape, action_size: int, packing_fallback: bool = True
 ) -> Networks:
-    """Build the actor and critic of §4.6 (each with its own extractor where it has one).
+    """Build the actor of §4.6 with its policy, and the critic (each with its own extractor where it
+    has one).
 
     ``action_size`` is A (SAC, XSAC) or N (DSAC, XDSAC); the config is validated on construction.
     ``packing_fallback=False`` only for counting FLOPs (:class:`~xrl_jax.sets.Packing`).
     """
     c = config
-    critic_widths = (c.critic_width,) * c.critic_depth
-    actor_widths = (c.actor_width,) * c.actor_depth
     packing = set_packing(c, packing_fallback)
-    # The mixture actors' rows include the neutral object, always present; the XSAC critic scores
-    # C component actions per row.
+    if c.is_mixture:
+        actor, policy = _mixture_actor(c, obs_shape, action_size, packing)
+    else:
+        actor, policy = _baseline_actor(c, action_size, packing)
+    # XSAC's policy has the critic score its K component actions per row, packed like the actor's rows
+    component_packing = getattr(policy, "component_packing", None)
+    critic_widths = (c.critic_width,) * c.critic_depth
+    if c.is_discrete:
+        extractor = make_extractor(c, packing)
+        critic = DiscreteCritic(extractor, action_size, critic_widths, c.n_critics, c.duelling)
+    else:
+        critic = ContinuousCritic(make_extractor(c, packing), critic_widths, c.n_critics, component_packing)
+    return Networks(c, obs_shape, action_size, actor, critic, policy, component_packing)
+
+
+def _baseline_actor(c: AgentConfig, action_size: int, packing: Packing | None) -> tuple[nn.Module, Policy]:
+    """SAC's or DSAC's actor (own extractor, MLP) and its policy."""
+    actor_widths = (c.actor_width,) * c.actor_depth
+    if c.is_discrete:
+        return CategoricalActor(make_extractor(c, packing), action_size, actor_widths), CategoricalPolicy()
+    actor = GaussianActor(make_extractor(c, packing), action_size, actor_widths)
+    return actor, SquashedGaussianPolicy(c.resolved_log_std_min(), c.log_std_max)
+
+
+def _mixture_actor(
+    c: AgentConfig, obs_shape: ObservationShape, action_size: int, packing: Packing | None
+) -> tuple[nn.Module, Policy]:
+    """XSAC's or XDSAC's per-object actor and its policy. The actor's packed rows include the neutral
+    object, always present; the XSAC critic scores C component actions per row."""
     mixture_packing = None if packing is None else packing.scaled(1.0, extra_rows=int(c.neutral_object))
-    component_packing = None
-    if mixture_packing is not None and c.algo == "xsac":
-        component_packing = mixture_packing.scaled(c.components_per_object)
     mixture = dict(
         width=c.actor_width,
         depth=c.actor_depth,
@@ -175,23 +206,18 @@ def make_networks(
         uniform_mixture=c.uniform_mixture,
         packing=mixture_packing,
     )
-    if c.algo == "sac":
-        actor = GaussianActor(make_extractor(c, packing), action_size, actor_widths)
-    elif c.algo == "dsac":
-        actor = CategoricalActor(make_extractor(c, packing), action_size, actor_widths)
-    elif c.algo == "xsac":
-        log_std = dict(log_std_min=c.resolved_log_std_min(), log_std_max=c.log_std_max)
-        actor = MixtureGaussianActor(
-            action_size, components_per_object=c.components_per_object, **log_std, **mixture
-        )
-    else:
-        actor = MixtureCategoricalActor(action_size, **mixture)
     if c.is_discrete:
-        extractor = make_extractor(c, packing)
-        critic = DiscreteCritic(extractor, action_size, critic_widths, c.n_critics, c.duelling)
-    else:
-        critic = ContinuousCritic(make_extractor(c, packing), critic_widths, c.n_critics, component_packing)
-    return Networks(c, obs_shape, action_size, actor, critic, component_packing)
+        return MixtureCategoricalActor(action_size, **mixture), CategoricalMixturePolicy(c.uniform_mixture)
+    component_packing = None
+    if mixture_packing is not None:
+        component_packing = mixture_packing.scaled(c.components_per_object)
+    log_std = dict(log_std_min=c.resolved_log_std_min(), log_std_max=c.log_std_max)
+    actor = MixtureGaussianActor(
+        action_size, components_per_object=c.components_per_object, **log_std, **mixture
+    )
+    return actor, GaussianMixturePolicy(
+        **log_std, uniform_mixture=c.uniform_mixture, component_packing=component_packing
+    )
 
 
 __all__ = [
