@@ -34,12 +34,9 @@ NUM_SLOTS = 8  # envs.intersection.MAX_AGENTS
 
 def _stored_env(run: Path) -> str | None:
     """The scenario of a results folder, or None when its config cannot be read (reported later)."""
-    from xrl_jax.runs.folder import RunFolderError, read_run_config
+    from xrl_jax.runs.folder import read_run_env
 
-    try:
-        return read_run_config(run).env
-    except RunFolderError:
-        return None
+    return read_run_env(run)
 
 
 EPILOG = """\

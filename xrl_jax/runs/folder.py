@@ -160,6 +160,16 @@ def read_run_config(folder: str | Path):
         raise RunFolderError(f"{path} is unreadable or from another version ({err})") from None
 
 
+def read_run_env(folder: str | Path) -> str | None:
+    """The scenario a results folder's ``config.json`` names, without validating the rest (so that a
+    run of an unsupported scenario is refused by name); None when there is no readable one."""
+    try:
+        env = read_document(run_paths(Path(folder))["config"], "the run's configuration")["config"]["env"]
+    except (RunFolderError, KeyError, TypeError):
+        return None
+    return env if isinstance(env, str) else None
+
+
 def read_checkpoint_plan(folder: str | Path, num_members: int) -> tuple[list[list[int]], int]:
     """The member groups of the run's checkpoints and the device count they were padded to
     (``plan.json``; one group on one device when it is missing, as in runs older than the plan)."""
