@@ -1,17 +1,28 @@
-"""What the experiment scripts' command lines share: a parser that fails in one line, and the
-argument types. Jax-free, so ``--help`` and bad input answer at once."""
+"""What the experiment scripts' command lines share: a parser that fails in one line, the one
+way a script reports a failure, and the argument types. Jax-free, so ``--help`` and bad input
+answer at once."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
+
+BAD_INPUT = 2  # the exit status of a request the script cannot carry out as given
+
+
+def fail(prog: str, message, status: int = BAD_INPUT) -> int:
+    """Report a failure as ``<prog>: error: <message>`` in one line on standard error; returns
+    ``status`` for ``main`` to return (2, bad input, unless told otherwise)."""
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    return status
 
 
 class OneLineParser(argparse.ArgumentParser):
     """argparse that reports a bad value in one line (no usage block), exit status 2."""
 
     def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message}\n")
+        self.exit(BAD_INPUT, f"{self.prog}: error: {message}\n")
 
 
 def _integer(text: str, minimum: int, what: str) -> int:

@@ -62,6 +62,13 @@ def checkpoint_dir(out: Path, group: int) -> Path:
     return Path(out) / "checkpoints" / f"group_{group}"
 
 
+def evaluation_file(out: Path, tracks: str, mode: str) -> Path:
+    """Where a later evaluation of the run's agents goes: ``evaluation_<tracks>.json`` for the
+    evaluation protocol's own mode, ``evaluation_<tracks>_<mode>.json`` for another."""
+    suffix = "" if mode == "eval" else f"_{mode}"
+    return Path(out) / f"evaluation_{tracks}{suffix}.json"
+
+
 def member_stem(cfg, member: int) -> str:
     """The file name (without suffix) of member ``member``'s metrics and evaluations: ``seed_<s>``
     in a plain run, ``point_<p>_seed_<s>`` in a sweep (``cfg`` is the run's TrainConfig)."""
@@ -168,6 +175,34 @@ def read_run_env(folder: str | Path) -> str | None:
     except (RunFolderError, KeyError, TypeError):
         return None
     return env if isinstance(env, str) else None
+
+
+def has_config(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a run's ``config.json``: a run was started there (so ``--resume``
+    continues it), whether or not it finished."""
+    return run_paths(Path(folder))["config"].is_file()
+
+
+def read_summary(folder: str | Path) -> dict:
+    """The ``summary.json`` a finished (or stopped) run wrote, or :class:`RunFolderError` in one line
+    saying that there is no readable one and why."""
+    path = run_paths(Path(folder))["summary"]
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise RunFolderError(f"no readable {path.name} ({getattr(err, 'strerror', None) or err})") from None
+    if not isinstance(document, dict):
+        raise RunFolderError(f"no readable {path.name} (not a JSON object)")
+    return document
+
+
+def is_complete(folder: str | Path) -> bool:
+    """Whether the run in ``folder`` finished: its summary says every member reached its last step.
+    A missing or unreadable summary is an unfinished run."""
+    try:
+        return bool(read_summary(folder).get("complete"))
+    except RunFolderError:
+        return False
 
 
 def read_checkpoint_plan(folder: str | Path, num_members: int) -> tuple[list[list[int]], int]:

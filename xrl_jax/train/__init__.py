@@ -7,7 +7,11 @@ Modules, by what they hold:
 * :mod:`~xrl_jax.train.episodes`: the rolling window of finished episodes (rollout metrics);
 * :mod:`~xrl_jax.train.chunk`: the run state, the compiled chunk and its report (:func:`make_train`);
 * :mod:`~xrl_jax.train.memory`: bytes per seed and the seed groups that fit;
-* :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`).
+* :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`);
+* :mod:`~xrl_jax.train.restore`: a run's checkpoint groups, for a resume and for readers of a folder;
+* :mod:`~xrl_jax.train.evaluate_run`: a trained run's agents evaluated again (:func:`evaluate_run`);
+* :mod:`~xrl_jax.train.start`: a run started as ``experiments/run.py`` asks (joining a job of
+  several processes, a new folder or a resumed one).
 
 The track banks are :mod:`xrl_jax.tracks`'s, the results folder :mod:`xrl_jax.runs`'s.
 """
@@ -23,6 +27,7 @@ from xrl_jax.config import (
 from xrl_jax.runs.folder import write_atomic
 from xrl_jax.tracks import cache_dir, cached_track_bank, make_envs, track_cache_path
 from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, make_train
+from xrl_jax.train.evaluate_run import evaluate_run
 from xrl_jax.train.loop import DiskFullError, DivergenceError, train
 from xrl_jax.train.memory import MemoryPlanError, estimate_seed_bytes, plan_memory
 from xrl_jax.train.restore import load_trained_agent, load_trained_agents
@@ -41,6 +46,7 @@ __all__ = [
     "cache_dir",
     "cached_track_bank",
     "estimate_seed_bytes",
+    "evaluate_run",
     "get_trainer",
     "load_trained_agent",
     "load_trained_agents",
