@@ -10,19 +10,19 @@ stopped and resumed run gives exactly the metrics of an uninterrupted one.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, non_negative_int, positive_int
+from cli_args import OneLineParser, fail, non_negative_int, positive_int
 
 from xrl_jax.config import ALGOS, ENVS, PRESETS, settings_help  # jax-free: --help stays fast
 
+PROG = "run.py"
 ROOT = Path(__file__).resolve().parents[1]
 EXIT_DIVERGED = 3
+EXIT_FAILED = 1  # a failure the message explains (full disk, no usable checkpoint, a lost process)
 
 
 EPILOG = """\
@@ -59,7 +59,12 @@ devices and hosts (README "Scaling out"):
   HOST:PORT --num-processes N --process-id I, or the variables JAX_COORDINATOR_ADDRESS,
   JAX_NUM_PROCESSES, JAX_PROCESS_ID, or under SLURM (srun) with no flags at all; every process
   gets the same options and --out (a shared file system), trains its share, and process 0 writes
-  the summary. Resume by starting every process again with --resume DIR.
+  the summary. A job whose processes have not all joined (or whose coordinator does not answer)
+  within --coordinator-timeout ends in one line. A process that dies mid-run ends the job: the
+  others stop with one line when a collective reports it (at once on CPU), but when only JAX's
+  missed heartbeats reveal it (a collective waiting on a GPU, or a process busy for over 100 s),
+  XLA aborts them with a page of C++ stack that Python cannot catch (status 134). Either way the
+  committed checkpoints are kept. Resume by starting every process again with --resume DIR.
 
 results folder:
   config.json (resolved config, versions, git commit), metrics/seed_<i>.jsonl (every
@@ -73,10 +78,11 @@ results folder:
 stopping and failures:
   Ctrl-C (SIGINT) or SIGTERM stops the run at once, or after the running chunk with a checkpoint when
   that ends within XRL_JAX_STOP_GRACE_S (default 30) seconds; the message says what is kept and how
-  to resume. Exit status: 0 done, 1 a failure the message explains (full disk, no usable checkpoint),
-  2 bad input, 3 a seed diverged (a non-finite loss or parameter: the run stops at once, naming the
-  seed, the step and the quantity, and keeps the last good checkpoint), 130/143 stopped by
-  SIGINT/SIGTERM. Right after the first chunk with updates the run prints its estimated duration.
+  to resume. Exit status: 0 done, 1 a failure the message explains (full disk, no usable checkpoint,
+  a lost process), 2 bad input (also a job that did not assemble), 3 a seed diverged (a non-finite
+  loss or parameter: the run stops at once, naming the seed, the step and the quantity, and keeps
+  the last good checkpoint), 130/143 stopped by SIGINT/SIGTERM. Right after the first chunk with
+  updates the run prints its estimated duration.
 
 environment: XRL_JAX_CACHE_DIR (default ~/.cache/xrl-jax) caches generated tracks and compiled code.
 """
@@ -84,7 +90,7 @@ environment: XRL_JAX_CACHE_DIR (default ~/.cache/xrl-jax) caches generated track
 
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
-        prog="run.py",
+        prog=PROG,
         description="Train explainable mixture-policy agents (and SAC baselines) on CarEnv scenarios, "
         "all seeds of a run vectorised in one process.",
         epilog=EPILOG.format(settings=settings_help()),
@@ -150,72 +156,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def fail(message: str) -> int:
-    print(f"run.py: error: {message}", file=sys.stderr)
-    return 2
-
-
-def enable_compilation_cache() -> None:
-    """Reuse compiled chunks across runs of the same configuration (a minute of compile on CPU)."""
-    import jax
-
-    from xrl_jax.train import cache_dir
-
-    path = cache_dir() / "jax"
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-
-
-def _config_from_args(args, base: dict | None = None):
-    """The resolved TrainConfig; unspecified options come from ``base`` (a stored run) or defaults."""
-    from xrl_jax.config import parse_sweep
-    from xrl_jax.train import parse_overrides, resolve_config
-
-    base = base or {}
-    overrides = parse_overrides(args.set or [])
-    stored_sweep = tuple((name, tuple(values)) for name, values in base.get("sweep", ()))
-    cfg = resolve_config(
-        env=args.env or base.get("env", "tracking"),
-        algo=args.algo or base.get("algo", "xsac"),
-        preset=args.preset or base.get("preset", "paper"),
-        num_seeds=args.seeds or base.get("num_seeds", 1),
-        total_steps=args.steps if args.steps is not None else None,
-        overrides=overrides,
-        sweep=parse_sweep(args.sweep) if args.sweep else stored_sweep,
-    )
-    return cfg.replace(num_devices=args.devices) if args.devices else cfg
-
-
-def _resume_mismatches(args, stored) -> list[str]:
-    """The explicitly given options (and --set keys) whose values differ from the stored run's."""
-    from xrl_jax.train import parse_overrides
-
-    wanted = _config_from_args(args, stored.to_dict()).to_dict()
-    have = stored.to_dict()
-    checked = [
-        ("env", "env"),
-        ("algo", "algo"),
-        ("preset", "preset"),
-        ("seeds", "num_seeds"),
-        ("steps", "total_steps"),
-        ("sweep", "sweep"),
-    ]
-    out = []
-    for option, field in checked:
-        if getattr(args, option) is not None and wanted[field] != have[field]:
-            out.append(f"{field}: stored {have[field]!r}, given {wanted[field]!r}")
-    for key in parse_overrides(args.set or []):
-        name = key.removeprefix("agent.")
-        a, b = (have[name], wanted[name]) if name in have else (have["agent"][name], wanted["agent"][name])
-        if a != b:
-            out.append(f"{name}: stored {a!r}, given {b!r}")
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from xrl_jax.interrupts import StopController
@@ -225,130 +165,59 @@ def main(argv: list[str] | None = None) -> int:
         return _main(args, argv, stop)
 
 
-def _join_processes(args) -> str | None:
-    """Join a multi-process job when the flags or the environment describe one; returns an error
-    message, or None. Every check that can fail without the other processes comes first."""
-    from xrl_jax.train import hosts
+def _request(args):
+    from xrl_jax.train.start import RunRequest
 
-    flags = (args.coordinator, args.num_processes, args.process_id)
-    if not any(v is not None for v in flags) and not hosts.wanted():
-        return None
-    if args.out is None and args.resume is None:
-        return (
-            "a run of several processes needs --out (or --resume): every process writes into the same folder"
-        )
-    try:
-        hosts.initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
-    except hosts.CoordinatorError as err:
-        return str(err)
-    except (RuntimeError, ValueError) as err:  # JAX's own checks of the job description
-        return f"cannot join the job: {str(err).strip().splitlines()[0]}"
-    return None
-
-
-def _check_devices(cfg) -> str | None:
-    from xrl_jax.train.chunk import mesh_devices
-
-    try:
-        mesh_devices(cfg.num_devices)
-    except ValueError as err:
-        return str(err)
-    return None
-
-
-def _read_baseline(args, cfg) -> tuple[dict | None, str | None]:
-    """The --baseline run's summary (None without --baseline), or an error message."""
-    if args.baseline is None:
-        return None, None
-    if cfg.num_points == 1:
-        return None, "--baseline draws a line in a sweep's figure; give it with --sweep"
-    path = Path(args.baseline) / "summary.json"
-    try:
-        baseline = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        return (
-            None,
-            f"--baseline {args.baseline}: no readable summary.json ({getattr(err, 'strerror', None) or err})",
-        )
-    if baseline.get("env") != cfg.env or not baseline.get("aggregate"):
-        return None, f"--baseline {args.baseline}: not a finished {cfg.env} run without a sweep"
-    return baseline, None
+    return RunRequest(
+        env=args.env,
+        algo=args.algo,
+        seeds=args.seeds,
+        steps=args.steps,
+        preset=args.preset,
+        sets=args.set,
+        sweep=args.sweep,
+        devices=args.devices,
+        out=args.out,
+        resume=args.resume,
+        baseline=args.baseline,
+        coordinator=args.coordinator,
+        num_processes=args.num_processes,
+        process_id=args.process_id,
+        coordinator_timeout=args.coordinator_timeout,
+    )
 
 
 def _main(args, argv, stop) -> int:
-    from xrl_jax.runs.folder import RunFolderError, holds_results, read_run_config
-    from xrl_jax.train import ConfigError
+    from xrl_jax.runs.folder import RunFolderError
+    from xrl_jax.train import ConfigError, DiskFullError, hosts
+    from xrl_jax.train.start import join_job, prepare_run
 
-    given_any = any(
-        v is not None
-        for v in (args.env, args.algo, args.seeds, args.steps, args.preset, args.set, args.sweep)
-    )
-    problem = _join_processes(args)
-    if problem:
-        return fail(problem)
-    import jax
-
+    request = _request(args)
     try:
-        if args.resume is not None:
-            if args.out is not None:
-                return fail("--out and --resume exclude each other (a resumed run writes into DIR)")
-            out = Path(args.resume)
-            try:
-                stored = read_run_config(out)
-            except RunFolderError as err:
-                return fail(f"--resume {out}: {err}")
-            if given_any:
-                diffs = _resume_mismatches(args, stored)
-                if diffs:
-                    return fail(f"--resume {out} holds a run with another configuration ({'; '.join(diffs)})")
-            cfg = stored.replace(num_devices=args.devices) if args.devices else stored
-        else:
-            cfg = _config_from_args(args)
-        baseline, problem = _read_baseline(args, cfg)
-        problem = _check_devices(cfg) or problem
-        if problem:  # before anything is written
-            return fail(problem)
-        if args.resume is not None:
-            stop.keep(f"the checkpoints in {out} are kept")
-        else:
-            out = (
-                Path(args.out)
-                if args.out
-                else ROOT
-                / "results"
-                / (f"{cfg.env}-{cfg.algo}-{datetime.datetime.now(datetime.timezone.utc):%Y%m%d-%H%M%S}")
-            )
-            if out.exists() and (not out.is_dir() or holds_results(out)):
-                return fail(
-                    f"results folder {out} already exists; "
-                    f"choose another --out or continue it with --resume {out}"
-                )
-            try:
-                out.mkdir(parents=True, exist_ok=True)
-                probe = out / f".write_test.{jax.process_index()}"
-                probe.write_text("")
-                probe.unlink()
-            except OSError as err:
-                return fail(f"cannot write the results folder --out {out}: {err.strerror or err}")
-    except (ConfigError, RunFolderError) as err:
-        return fail(str(err))
-    return _train(args, argv, cfg, out, stop, baseline)
+        # A job whose other processes never join ends from JAX's waiting thread, in one line.
+        join_job(request, on_stall=lambda message: hosts.leave_at_once(fail(PROG, message)))
+        prepared = prepare_run(request, ROOT / "results")
+    except (ConfigError, RunFolderError, hosts.CoordinatorError) as err:
+        return fail(PROG, err)
+    except DiskFullError as err:
+        return fail(PROG, err, EXIT_FAILED)
+    if prepared.resume:
+        stop.keep(f"the checkpoints in {prepared.out} are kept")
+    return _train(args, argv, prepared, stop)
 
 
-def _train(args, argv, cfg, out: Path, stop, baseline: dict | None) -> int:
-    """Train (a new run's config.json is written by the trainer, under the folder's lock); every
-    failure ends in one line and a status.
-    ``baseline``: the --baseline run's summary, drawn into a sweep's figure."""
+def _train(args, argv, prepared, stop) -> int:
+    """Train the prepared run (a new run's config.json is written by the trainer, under the folder's
+    lock); every failure ends in one line and a status."""
     from xrl_jax.checkpoint import NoGoodCheckpointError
     from xrl_jax.interrupts import RunInterrupted, exit_status
+    from xrl_jax.runs import format_curve, format_table
     from xrl_jax.runs.folder import RunFolderError
-    from xrl_jax.train import ConfigError, DiskFullError, DivergenceError, MemoryPlanError
+    from xrl_jax.train import ConfigError, DiskFullError, DivergenceError, MemoryPlanError, hosts
+    from xrl_jax.train.start import LostProcessError, enable_compilation_cache, train_prepared
 
     enable_compilation_cache()
-    from xrl_jax import train as train_mod
-    from xrl_jax.runs import format_curve, format_table, plot_sweep
-    from xrl_jax.train import hosts
-
+    cfg, out = prepared.cfg, prepared.out
     primary = hosts.is_primary()  # process 0 talks for the job; the others train quietly
     quiet = args.quiet or not primary
     log = (lambda *a, **k: None) if quiet else (lambda msg: print(msg, file=sys.stderr))
@@ -361,27 +230,24 @@ def _train(args, argv, cfg, out: Path, stop, baseline: dict | None) -> int:
         f"{cfg.num_seeds} seed(s){points} x {cfg.total_steps} steps -> {out}"
     )
     try:
-        summary = train_mod.train(
-            cfg, out, resume=args.resume is not None, progress=not quiet, log=log, stop=stop, command=command
-        )
+        summary = train_prepared(prepared, progress=not quiet, log=log, stop=stop, command=command)
     except (MemoryPlanError, ConfigError, RunFolderError) as err:
-        return fail(str(err))
+        return fail(PROG, err)
     except DivergenceError as err:
         print(f"run.py: diverged: {err}", file=sys.stderr)
         return EXIT_DIVERGED
     except (DiskFullError, NoGoodCheckpointError) as err:
-        print(f"run.py: error: {err}", file=sys.stderr)
-        return 1
+        return fail(PROG, err, EXIT_FAILED)
+    except LostProcessError as err:  # JAX's exit handlers would wait for the lost process, then abort
+        hosts.leave_at_once(fail(PROG, err, EXIT_FAILED))
     except RunInterrupted as err:
         print(f"\nrun.py: {err}; continue with: {resume_command}", file=sys.stderr)
         return exit_status(err.signum)
     if summary is None:
         print(f"run.py: stopped early; continue with: {resume_command}", file=sys.stderr)
-        return 1
+        return EXIT_FAILED
     if not primary:
         return 0
-    if baseline is not None and summary.get("sweep"):
-        plot_sweep(summary, out / "sweep.png", baseline)
     print(format_curve(summary))
     print()
     print(format_table(summary))

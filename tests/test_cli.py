@@ -369,6 +369,42 @@ def test_a_full_disk_ends_in_one_line_with_the_checkpoint_intact(run, capsys, tm
     assert checkpoint_steps(out) == [64]
 
 
+@pytest.mark.parametrize("write", ["results folder", "config.json", "plan.json"])
+def test_a_disk_full_at_the_start_ends_in_one_line(run, capsys, tmp_path, monkeypatch, write):
+    """Before: a 13-line OSError 28 traceback when the disk was full before the first result. Now
+    every write of the start (the folder, config.json, plan.json) ends in one line, status 1, that
+    says the disk is full and that the same command starts the run once there is space."""
+    import errno
+    import pathlib
+
+    from xrl_jax.train import loop
+
+    out = tmp_path / "full"
+    full = OSError(errno.ENOSPC, "No space left on device")
+    if write == "results folder":
+        original_mkdir = pathlib.Path.mkdir
+
+        def mkdir(self, *args, **kwargs):
+            if self == out:
+                raise full
+            original_mkdir(self, *args, **kwargs)
+
+        monkeypatch.setattr(pathlib.Path, "mkdir", mkdir)
+    else:
+        original_write = loop.write_atomic
+
+        def write_atomic(path, text):
+            if path.name == write:
+                raise full
+            original_write(path, text)
+
+        monkeypatch.setattr(loop, "write_atomic", write_atomic)
+    status, _, err = call(run, capsys, *SMOKE, "--out", str(out))
+    assert status == 1 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith(f"run.py: error: the disk of {out} is full (No space left on device)")
+    assert "before the run wrote any results" in err and "start it again" in err
+
+
 def test_checkpoints_also_follow_wall_time(run, capsys, tmp_path, monkeypatch):
     """A run interrupted between step checkpoints keeps the time-based one. With a tiny
     checkpoint_minutes the first chunk's end is due; the next is not, because a time-based checkpoint

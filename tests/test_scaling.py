@@ -17,6 +17,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -111,6 +112,70 @@ def test_unreachable_coordinator_fails_in_one_line_within_its_timeout(tmp_path):
                           text=True, timeout=60, env=dict(os.environ, PYTHONPATH=str(ROOT)))  # fmt: skip
     one_line_error(done.returncode, done.stderr, "cannot reach the coordinator", "within 2 s")
     assert not (tmp_path / "never").exists()
+
+
+def test_a_job_whose_other_processes_never_join_fails_in_one_line_within_its_timeout(tmp_path):
+    """Process 0 started alone: JAX waits for the others and then aborts with ~15 lines of C++ stack
+    (status 134). The CLI gives JAX a longer deadline than --coordinator-timeout and ends first, in
+    one line naming the coordinator, before anything is written."""
+    address = f"127.0.0.1:{_free_port()}"
+    args = ["--preset", "smoke", "--out", str(tmp_path / "never"), "--coordinator", address,
+            "--num-processes", "2", "--process-id", "0", "--coordinator-timeout", "3"]  # fmt: skip
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("JAX_COORDINATOR_ADDRESS", None)
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "experiments/run.py", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120, env=env)  # fmt: skip
+    elapsed = time.monotonic() - started
+    one_line_error(done.returncode, done.stderr, "did not assemble within 3 s", f"the coordinator {address}",
+                   "--process-id 0..1", "nothing was written")  # fmt: skip
+    assert not (tmp_path / "never").exists()
+    from xrl_jax.train.hosts import JOIN_GRACE_S
+
+    assert elapsed < 3 + JOIN_GRACE_S, elapsed  # JAX's own deadline (and abort) comes later
+
+
+LOSE_A_PROCESS = """
+import os, sys, time
+sys.path.insert(0, "experiments")
+import run
+from xrl_jax import train
+from xrl_jax.train import hosts
+
+def vanish(*args, **kwargs):  # process 1 dies without a word, as a killed process would
+    os._exit(9)
+
+def collect(*args, **kwargs):  # process 0 meets it in the job's next collective
+    time.sleep(1)
+    hosts.gathered(1)
+
+train.train = vanish if sys.argv[1] == "1" else collect
+sys.exit(run.main(sys.argv[2:]))
+"""
+
+
+def test_a_process_that_dies_mid_run_ends_the_others_in_one_line(tmp_path):
+    """Before: a traceback, then ~70 lines of C++ stack as JAX's shutdown waits for the lost process
+    and aborts. Now the collective's error (Gloo on CPU) ends process 0 at once, in one line, status 1,
+    saying how to resume. (A loss that only JAX's missed heartbeats reveal still ends in XLA's abort;
+    see run.py --help.)"""
+    out = tmp_path / "job"
+    job = ["--preset", "smoke", "--quiet", "--out", str(out), "--coordinator", f"127.0.0.1:{_free_port()}",
+           "--num-processes", "2"]  # fmt: skip
+    env = _env(tmp_path / "cache", 1)
+    pipes = {"cwd": ROOT, "env": env, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", LOSE_A_PROCESS, str(i), *job, "--process-id", str(i)], **pipes
+        )
+        for i in range(2)
+    ]
+    (_, err), (_, err_1) = (p.communicate(timeout=120) for p in procs)
+    assert procs[1].returncode == 9, err_1
+    lines = [line for line in err.strip().splitlines() if not line.startswith("[Gloo]")]  # Gloo's own note
+    assert procs[0].returncode == 1 and len(lines) == 1, err
+    assert lines[0].startswith("run.py: error: process 0 of 2 lost another process of the job (")
+    assert f"start every process again with --resume {out}" in lines[0]
 
 
 def test_a_sweep_point_equals_a_plain_run_of_its_values(run, one_device, tmp_path):

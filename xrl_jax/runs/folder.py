@@ -234,17 +234,41 @@ def truncate_lines(path: Path, max_step: int) -> None:
     write_atomic(path, "".join(line + "\n" for line in kept))
 
 
-def is_disk_full(error: BaseException) -> bool:
-    """Whether ``error`` (or what caused it, as orbax wraps it) is a full disk or an exceeded quota."""
+def disk_full_reason(error: BaseException | None) -> str | None:
+    """Why ``error`` (or what caused it, as orbax wraps it) is a full disk: "No space left on device"
+    or "Disk quota exceeded"; None for any other error."""
     seen = set()
     while error is not None and id(error) not in seen:
         seen.add(id(error))
         if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
-            return True
-        if "No space left on device" in str(error) or "Disk quota exceeded" in str(error):
-            return True
+            return os.strerror(error.errno)
+        for reason in (os.strerror(errno.ENOSPC), os.strerror(errno.EDQUOT)):
+            if reason in str(error):
+                return reason
         error = error.__cause__ or error.__context__
-    return False
+    return None
+
+
+def is_disk_full(error: BaseException) -> bool:
+    """Whether ``error`` (or what caused it, as orbax wraps it) is a full disk or an exceeded quota."""
+    return disk_full_reason(error) is not None
+
+
+def disk_full_message(out: Path, resume: bool, error: BaseException) -> str:
+    """What to do about a disk (or quota) that filled up while a run wrote into ``out``, in one line.
+    Before the run's first results (only its start-up files are there, see :func:`holds_results`)
+    the same command starts it again; later, the committed checkpoints are intact and ``--resume``
+    continues them."""
+    reason = disk_full_reason(error) or os.strerror(errno.ENOSPC)
+    if not resume and not (out.is_dir() and holds_results(out)):
+        return (
+            f"the disk of {out} is full ({reason}) before the run wrote any results: free some space "
+            "(or choose another --out) and start it again"
+        )
+    return (
+        f"the disk of {out} is full ({reason}); committed checkpoints are intact: "
+        f"free some space and continue with --resume {out}"
+    )
 
 
 # ------------------------------------------------------------------------------------------------

@@ -13,7 +13,10 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
+import threading
 import time
+from collections.abc import Callable
 
 import jax
 import numpy as np
@@ -24,6 +27,13 @@ COORDINATOR_ENV, NUM_PROCESSES_ENV, PROCESS_ID_ENV = (
     "JAX_NUM_PROCESSES",
     "JAX_PROCESS_ID",
 )
+
+# How much longer than the --coordinator-timeout JAX itself waits for the job to assemble, so that
+# initialize's own watchdog (a one-line message) ends the wait before JAX's abort does.
+JOIN_GRACE_S = 30
+# What a failed collective says when another process of the job died: Gloo's closed connections on
+# CPU, the coordination service's missed heartbeats.
+LOST_PROCESS_MARKS = ("Connection reset by peer", "Connection closed by peer", "Gloo", "heartbeat timeout")
 
 
 class CoordinatorError(RuntimeError):
@@ -110,11 +120,21 @@ def _wait_for_coordinator(address: str, timeout_s: float) -> None:
 
 
 def initialize(
-    coordinator: str | None, num_processes: int | None, process_id: int | None, timeout_s: float
+    coordinator: str | None,
+    num_processes: int | None,
+    process_id: int | None,
+    timeout_s: float,
+    on_stall: Callable[[str], None] | None = None,
 ) -> None:
     """Join the job (``jax.distributed.initialize``). Missing values come from JAX's environment
     variables or its cluster detection (SLURM, Open MPI, Kubernetes). A process other than 0 first
-    checks within ``timeout_s`` that the coordinator answers."""
+    checks within ``timeout_s`` that the coordinator answers.
+
+    When the other processes have not all joined within ``timeout_s``, JAX aborts the process with a
+    page of C++ stack that Python cannot catch. With ``on_stall``, that wait is JAX's for
+    :data:`JOIN_GRACE_S` longer and ``on_stall`` is called, on another thread, with a one-line
+    message once ``timeout_s`` has passed; it must end the process (``os._exit``: the waiting thread
+    is inside JAX and cannot be interrupted)."""
     coordinator = coordinator or os.environ.get(COORDINATOR_ENV)
     if num_processes is None and os.environ.get(NUM_PROCESSES_ENV):
         num_processes = int(os.environ[NUM_PROCESSES_ENV])
@@ -126,9 +146,49 @@ def initialize(
         _split_address(coordinator)
         if process_id not in (None, 0):
             _wait_for_coordinator(coordinator, timeout_s)
-    jax.distributed.initialize(
-        coordinator_address=coordinator,
-        num_processes=num_processes,
-        process_id=process_id,
-        initialization_timeout=max(int(timeout_s), 1),
+    watchdog = None
+    if on_stall is not None:
+        message = _stall_message(coordinator, num_processes, process_id, timeout_s)
+        watchdog = threading.Timer(timeout_s, on_stall, args=(message,))
+        watchdog.daemon = True
+        watchdog.start()
+    try:
+        jax.distributed.initialize(
+            coordinator_address=coordinator,
+            num_processes=num_processes,
+            process_id=process_id,
+            initialization_timeout=max(int(timeout_s), 1) + (JOIN_GRACE_S if watchdog else 0),
+        )
+    finally:
+        if watchdog is not None:
+            watchdog.cancel()
+
+
+def _stall_message(
+    coordinator: str | None, num_processes: int | None, process_id: int | None, timeout_s: float
+) -> str:
+    who = "this process" if process_id is None else f"process {process_id}"
+    others = "the other processes" if num_processes is None else f"all {num_processes} processes"
+    ids = "" if num_processes is None else f", --process-id 0..{num_processes - 1}"
+    where = f"the coordinator {coordinator}" if coordinator else "the job's coordinator"
+    return (
+        f"the job did not assemble within {timeout_s:g} s: {who} waited at {where} for {others} to join; "
+        f"start them all with the same options{ids} within --coordinator-timeout of each other"
     )
+
+
+def lost_a_process(error: BaseException) -> bool:
+    """Whether ``error`` is a collective of a job of several processes that failed because another
+    process is gone (a closed connection: Gloo on CPU reports it at once) or stopped answering."""
+    if jax.process_count() == 1:
+        return False
+    text = str(error)
+    return any(mark in text for mark in LOST_PROCESS_MARKS)
+
+
+def leave_at_once(status: int) -> None:
+    """End this process now with ``status``, skipping the exit handlers: after a process of the job is
+    lost, JAX's own shutdown waits at a barrier for it and then aborts with a page of C++ stack."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)

@@ -26,6 +26,7 @@ from xrl_jax.runs.folder import (
     RunLock,
     append_lines,
     check_history,
+    disk_full_message,
     is_disk_full,
     member_fields,
     member_stem,
@@ -102,23 +103,21 @@ def train(
     out = Path(out)
     if warn is None:
         warn = functools.partial(print, file=sys.stderr)
-    out.mkdir(parents=True, exist_ok=True)
-    with RunLock(out, jax.process_index()):
-        if hosts.is_primary():
-            remove_leftovers(out)
-            if not resume:
-                document = config_document(cfg, command)
-                write_atomic(run_paths(out)["config"], json.dumps(document, indent=2, sort_keys=True) + "\n")
-        hosts.sync("xrl-jax: run folder ready")
-        try:
+    try:  # from the folder's first write on: a full disk ends in one line
+        out.mkdir(parents=True, exist_ok=True)
+        with RunLock(out, jax.process_index()):
+            if hosts.is_primary():
+                remove_leftovers(out)
+                if not resume:
+                    document = config_document(cfg, command)
+                    text = json.dumps(document, indent=2, sort_keys=True) + "\n"
+                    write_atomic(run_paths(out)["config"], text)
+            hosts.sync("xrl-jax: run folder ready")
             return _HostLoop(cfg, out, trainer, log, warn, progress, stop).run(resume, stop_after_chunks)
-        except Exception as err:  # orbax reports a full disk as ValueError("RESOURCE_EXHAUSTED ...")
-            if not is_disk_full(err):
-                raise
-            raise DiskFullError(
-                f"the disk of {out} is full (No space left on device); committed checkpoints are intact: "
-                f"free some space and continue with --resume {out}"
-            ) from None
+    except Exception as err:  # orbax reports a full disk as ValueError("RESOURCE_EXHAUSTED ...")
+        if not is_disk_full(err):
+            raise
+        raise DiskFullError(disk_full_message(out, resume, err)) from None
 
 
 class _StopAfterChunks(Exception):
