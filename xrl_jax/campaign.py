@@ -1,0 +1,239 @@
+"""The paper's whole protocol as one resumable campaign (``experiments/paper.py``): its runs, what
+they cost, running them one after another, and the report over them.
+
+Runs, one results folder each: every env x agent (Fig. 5-7), the kappa sweep of Fig. 8 (discrete
+Country Road) and the Table I variants (XSAC on Country Road with its mixture weights from hidden
+layer 1 and 2; layer 3 is the main XSAC run). A finished run is skipped and a started one resumed,
+so the same campaign continues where it stopped. It sits above the trainer (memory plans) and the
+report.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from xrl_jax.config import ALGOS, ENVS, ConfigError, parse_overrides, parse_sweep, resolve_config
+
+KAPPAS = "-0.01,-0.001,0,0.001,0.01,0.1"
+# Device throughput for the estimate, in FLOP/s the update achieves. This CPU: bench.py update measured
+# 96-103 GFLOP/s for the width-256 X agents on 2 cores (README, Benchmarks). An H100 SXM: 67 TFLOP/s
+# float32 on its datasheet, of which these small networks reach a fraction: --utilisation.
+CPU_FLOPS = 100e9
+H100_FLOPS = 67e12
+STOPPED_BY_SIGNAL = (130, 143)  # run.py's statuses after SIGINT / SIGTERM
+BAD_INPUT = 2  # run.py's status for a request it refuses: the campaign's others would be refused too
+
+
+@dataclass(frozen=True)
+class PlannedRun:
+    name: str
+    env: str
+    algo: str
+    sets: tuple[str, ...] = ()
+    sweep: tuple[str, ...] = ()
+    figure: str = ""
+
+    def args(self, preset: str, seeds: int) -> list[str]:
+        """The run's options for ``experiments/run.py``."""
+        out = ["--env", self.env, "--algo", self.algo, "--preset", preset, "--seeds", str(seeds)]
+        for item in self.sets:
+            out += ["--set", item]
+        for item in self.sweep:
+            out += ["--sweep", item]
+        return out
+
+
+def campaign() -> list[PlannedRun]:
+    """Every run of the paper's protocol, in the order they run."""
+    runs = [
+        PlannedRun(
+            f"{env}-{algo}",
+            env,
+            algo,
+            figure={"country_road": "Fig. 5", "tracking": "Fig. 6", "intersection": "Fig. 7"}[env],
+        )
+        for env in ENVS
+        for algo in ALGOS
+    ]
+    runs.append(
+        PlannedRun(
+            "country_road-xdsac-kappa", "country_road", "xdsac", sweep=(f"kappa={KAPPAS}",), figure="Fig. 8"
+        )
+    )
+    for depth in (1, 2):
+        runs.append(
+            PlannedRun(
+                f"country_road-xsac-weights{depth}",
+                "country_road",
+                "xsac",
+                sets=(f"weight_depth={depth}",),
+                figure="Table I",
+            )
+        )
+    return runs
+
+
+def select_runs(patterns: list[str] | None) -> list[PlannedRun]:
+    """The campaign's runs whose names match one of the shell-style ``patterns`` (all without any);
+    :class:`~xrl_jax.config.ConfigError` when none does."""
+    runs = campaign()
+    if not patterns:
+        return runs
+    chosen = [r for r in runs if any(fnmatch.fnmatchcase(r.name, pattern) for pattern in patterns)]
+    if not chosen:
+        names = ", ".join(r.name for r in runs)
+        raise ConfigError(f"--only {' '.join(patterns)} matches no run; runs: {names}")
+    return chosen
+
+
+def run_status(folder: Path) -> str:
+    """ "done" (a complete summary), "started" (a config, so --resume continues it) or "new"."""
+    from xrl_jax.runs.folder import has_config, is_complete  # xrl_jax.runs imports jax: not for --help
+
+    if is_complete(folder):
+        return "done"
+    return "started" if has_config(folder) else "new"
+
+
+def check_sets(runs: list[PlannedRun], sets: list[str]) -> None:
+    """Raise :class:`~xrl_jax.config.ConfigError` when the ``--set`` items cannot reach the runs (one
+    malformed, a setting given twice, or one that a run sets itself): checked before the first run
+    starts rather than when a later run refuses them and ends the campaign halfway."""
+    parse_overrides(sets)
+    for planned in runs:
+        try:
+            parse_overrides([*planned.sets, *sets])
+        except ConfigError as err:
+            raise ConfigError(f"{planned.name} sets this itself: {err}") from None
+
+
+def plan(runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation: float) -> list[dict]:
+    """One row per run: its status, members, memory and groups on this machine, FLOPs and device-hours."""
+    from xrl_jax.occupancy import load_occupancy, update_cost
+    from xrl_jax.resources import format_bytes
+    from xrl_jax.train import get_trainer, plan_memory
+
+    occupancy = load_occupancy()
+    rows = []
+    for run in runs:
+        cfg = resolve_config(
+            run.env,
+            run.algo,
+            preset,
+            num_seeds=seeds,
+            overrides=parse_overrides(list(run.sets)),
+            sweep=parse_sweep(list(run.sweep)),
+        )
+        trainer = get_trainer(cfg)
+        memory = plan_memory(trainer, cfg)
+        # FLOPs as they run: the packed update, or every slot when a batch overflows (by the measured
+        # occupancy of docs/set_occupancy.json, members sharing their branches as on one device).
+        cost = update_cost(trainer.agent, cfg.batch_size, cfg.num_members, occupancy)
+        flops = cost["expected"]
+        per_member = max(cfg.total_steps - cfg.warmup_steps, 0)
+        if cfg.multi_agent:  # one update per acting vehicle: as many as measured per env step
+            per_member *= occupancy["intersection"]["acting_vehicles_per_env_step"]
+        total = flops * per_member * cfg.num_members
+        rows.append(
+            {
+                "run": run.name,
+                "figure": run.figure,
+                "status": run_status(out / run.name),
+                "members": cfg.num_members,
+                "steps": cfg.total_steps,
+                "memory_per_member": format_bytes(memory["per_seed_bytes"]["total"]),
+                "groups": len(memory["groups"]),
+                "devices": memory["devices"],
+                "gflop_per_update": flops / 1e9,
+                "dense_gflop_per_update": cost["dense"] / 1e9,
+                "fallback_probability": cost["fallback_probability"],
+                "pflop_total": total / 1e15,
+                "cpu_hours": total / CPU_FLOPS / 3600,
+                "h100_hours": total / (H100_FLOPS * utilisation) / 3600,
+            }
+        )
+    return rows
+
+
+def format_plan(rows: list[dict], utilisation: float) -> list[str]:
+    """The plan as a table, and the device-hours of what is still to run."""
+    lines = [
+        f"{'run':<30} {'for':<8} {'status':<8} {'members':>7} {'memory/member':>13} {'groups':>6} "
+        f"{'GFLOP/upd':>9} {'dense':>7} {'CPU h':>10} {'H100 h':>8}"
+    ]
+    for r in rows:
+        lines.append(
+            f"{r['run']:<30} {r['figure']:<8} {r['status']:<8} {r['members']:>7} "
+            f"{r['memory_per_member']:>13} {r['groups']:>6} {r['gflop_per_update']:>9.3g} "
+            f"{r['dense_gflop_per_update']:>7.3g} {r['cpu_hours']:>10,.1f} {r['h100_hours']:>8,.2f}"
+        )
+    todo = [r for r in rows if r["status"] != "done"]
+    cpu, h100 = sum(r["cpu_hours"] for r in todo), sum(r["h100_hours"] for r in todo)
+    lines.append(
+        f"total still to run: {cpu:,.0f} CPU hours at {CPU_FLOPS / 1e9:.0f} GFLOP/s (this 2-core CPU), "
+        f"{h100:,.1f} H100 hours at {utilisation:.0%} of {H100_FLOPS / 1e12:.0f} TFLOP/s; updates only "
+        "(on this CPU a vector step of the envs costs ~22 us against ~40 ms for an update: bench.py tracks)"
+    )
+    return lines
+
+
+@dataclass(frozen=True)
+class CampaignSettings:
+    """How the campaign's runs start: the preset, seeds per configuration, and ``--set`` items for
+    every run it starts (resumed runs keep their own)."""
+
+    preset: str = "paper"
+    seeds: int = 20
+    sets: tuple[str, ...] = ()
+    controller: bool = True  # each scenario's yardstick in the report
+
+
+def run_campaign(
+    runs: list[PlannedRun],
+    out: Path,
+    settings: CampaignSettings,
+    run_one: Callable[[list[str]], int],
+    say: Callable[[str], None],
+    show: Callable[[str], None],
+    again: str,
+) -> int:
+    """Run ``runs`` into ``out`` one after another with ``run_one`` (run.py's ``main``: options in,
+    exit status out), skipping finished ones and resuming started ones, then write the report over
+    every started run into ``out/report``. ``say`` takes progress notes, ``show`` the report's path;
+    ``again`` is the command that continues the campaign. Returns the exit status: a run's own when
+    it was stopped by a signal or refused its options, 1 when a run did not finish, else 0."""
+    from xrl_jax.report import write_report
+    from xrl_jax.runs.folder import has_config
+
+    out.mkdir(parents=True, exist_ok=True)
+    failed = []
+    for planned in runs:
+        folder = out / planned.name
+        status = run_status(folder)
+        if status == "done":
+            say(f"{planned.name}: done, skipped")
+            continue
+        if status == "started":
+            argv = ["--resume", str(folder), "--quiet"]
+        else:
+            extra = [word for item in settings.sets for word in ("--set", item)]
+            argv = [*planned.args(settings.preset, settings.seeds), *extra, "--out", str(folder), "--quiet"]
+        say(f"{planned.name}: {'resuming' if status == 'started' else 'starting'}")
+        code = run_one(argv)
+        if code in STOPPED_BY_SIGNAL:  # the run kept its checkpoint; end the campaign
+            say(f"stopped; continue with: {again}")
+            return code
+        if code == BAD_INPUT:
+            return code
+        if code != 0:
+            failed.append(planned.name)
+    folders = [out / r.name for r in runs if has_config(out / r.name)]
+    report = write_report(folders, out / "report", controller=settings.controller)
+    show(f"report: {report}")
+    if failed:
+        say(f"these runs did not finish: {', '.join(failed)} (see their messages above)")
+        return 1
+    return 0
