@@ -10,7 +10,9 @@ Modules, by what they hold:
 * :mod:`~xrl_jax.explain.scenes`: where a step's observed objects are in the world;
 * :mod:`~xrl_jax.explain.drawing`: glyphs drawn onto the bird view of ``envs.render``;
 * :mod:`~xrl_jax.explain.episodes`: recorded episodes as frames and per-step attributions;
-* :mod:`~xrl_jax.explain.figures`: how to read a figure, and the public names of the four above.
+* :mod:`~xrl_jax.explain.figures`: how to read a figure, and the public names of the four above;
+* :mod:`~xrl_jax.explain.run_figures`: a trained run's episode drawn and its attributions written
+  (``experiments/explain.py``).
 
 The figure modules need matplotlib; importing this package alone does not load them. Trained
 agents come from a results folder through :func:`xrl_jax.train.restore.load_trained_agent`.

@@ -1,0 +1,185 @@
+"""A trained run's explanations over one evaluation episode (``experiments/explain.py``): the agent of
+one seed restored from the run's newest good checkpoint, its episode rolled out on the device, and
+the frames (PNG, GIF, MP4) and per-step attributions written.
+
+Racing runs drive one of the run's fixed evaluation tracks; Intersection runs replay one of its
+evaluation episodes (8 vehicles, the evaluation's traffic) with every car driven by the agent,
+following one vehicle slot. It restores agents through :func:`xrl_jax.train.load_trained_agent`,
+so it sits above the trainer; the figure modules need matplotlib.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from envs.intersection import MAX_AGENTS
+from xrl_jax.config import ENVS, MULTI_AGENT_ENVS
+from xrl_jax.explain.explanations import (
+    make_episode_rollout,
+    make_multiagent_episode_rollout,
+    single_track_params,
+)
+
+# Single-agent scenarios drive fixed evaluation tracks; multi-agent ones replay evaluation episodes
+# with fixed env keys, following one of the MAX_AGENTS vehicle slots.
+EPISODE_ENVS = tuple(env for env in ENVS if env not in MULTI_AGENT_ENVS)
+
+
+class ExplainError(ValueError):
+    """A figure that cannot be drawn as asked (an option out of range); the message is one line."""
+
+
+@dataclass(frozen=True)
+class FigureRequest:
+    """What to draw: the run's ``seed`` (at sweep ``point``), evaluation ``episode``, the frame of
+    ``step`` (PNG) or the whole episode (GIF, MP4) into ``out``, and the attributions' file."""
+
+    run: Path
+    out: Path
+    attributions: Path
+    seed: int = 0
+    point: int = 0
+    episode: int = 0
+    step: int = 0
+    key: int = 0
+    threshold: float = 0.05
+    max_steps: int | None = None
+    width: int = 1280
+    height: int = 720
+    fps: int = 10
+    mirrored: bool = False
+    slot: int | None = None  # intersection: the vehicle slot followed (None: first occupied at step 0)
+    all_slots: bool = False  # intersection: attributions of every occupied slot
+
+    @property
+    def is_video(self) -> bool:
+        return self.out.suffix.lower() != ".png"
+
+
+def explain_run(request: FigureRequest, note=print) -> str:
+    """Draw ``request``'s figure and write its attributions; returns one line saying what was written.
+    ``note`` takes a remark (a baseline has no per-object explanations). Raises
+    :class:`ExplainError` or :class:`~xrl_jax.runs.folder.RunFolderError` (one line) for a request
+    the run cannot answer."""
+    from xrl_jax.runs.folder import read_run_env
+    from xrl_jax.train import load_trained_agent
+
+    env = read_run_env(request.run)  # None: no readable config, which the restore reports
+    if env is not None and env not in EPISODE_ENVS + MULTI_AGENT_ENVS:
+        supported = ", ".join(EPISODE_ENVS + MULTI_AGENT_ENVS)
+        raise ExplainError(f"episodes of {env} runs are not supported (only {supported})")
+    multi_agent = env in MULTI_AGENT_ENVS
+    if not multi_agent and (request.slot is not None or request.all_slots):
+        raise ExplainError("--slot and --all-slots are for intersection runs only")
+    if multi_agent and request.slot is not None and request.slot >= MAX_AGENTS:
+        raise ExplainError(
+            f"--slot {request.slot} out of range: the intersection has slots 0..{MAX_AGENTS - 1}"
+        )
+    cfg, trainer, agent_state = load_trained_agent(request.run, request.seed, request.point)
+    if request.episode >= cfg.eval_episodes:
+        what = "episodes" if multi_agent else "on tracks"
+        raise ExplainError(
+            f"episode {request.episode} out of range: the run evaluates {what} 0..{cfg.eval_episodes - 1}"
+        )
+    if not trainer.agent.config.is_mixture:
+        note(
+            f"{cfg.algo} is a baseline without per-object explanations; "
+            "the figure shows only its action distribution"
+        )
+    if multi_agent:
+        return _explain_intersection(request, cfg, trainer, agent_state)
+    return _explain_track(request, cfg, trainer, agent_state)
+
+
+def _check_step(request: FigureRequest, length: int) -> None:
+    if not request.is_video and request.step >= length:
+        raise ExplainError(f"--step {request.step} is beyond the episode ({length} steps: 0..{length - 1})")
+
+
+def _write(request: FigureRequest, figures, title: str, step_title: str, attributions) -> None:
+    """The frame of ``request.step`` or the whole episode, then the attributions (``attributions()``:
+    the rows)."""
+    from envs.render import save_png, save_video
+    from xrl_jax.explain.figures import write_attributions
+
+    options = {"threshold": request.threshold, "width": request.width, "height": request.height}
+    if request.is_video:
+        save_video(figures.frames(title=title, **options), request.out, fps=request.fps)
+    else:
+        frame, _ = figures.frame(request.step, title=step_title, **options)
+        save_png(frame, request.out)
+    write_attributions(attributions(), request.attributions)
+
+
+def _explain_track(request: FigureRequest, cfg, trainer, agent_state) -> str:
+    """A racing run: drive evaluation track ``request.episode`` with the ego car explained."""
+    from xrl_jax.explain.figures import EpisodeFigures
+
+    params = single_track_params(trainer.eval_params, request.episode)
+    max_steps = int(trainer.eval_params.max_steps) + 1
+    if request.max_steps is not None:
+        max_steps = min(max_steps, request.max_steps)
+    agent = trainer.agent
+    rollout = make_episode_rollout(trainer.env, agent, max_steps)
+    record = jax.device_get(rollout(jax.random.PRNGKey(request.key), params, agent_state))
+    figures = EpisodeFigures(
+        cfg.env_name,
+        trainer.env,
+        params,
+        record,
+        neutral=bool(getattr(agent.config, "neutral_object", False)),
+        mirrored=request.mirrored,
+    )
+    length = figures.length
+    _check_step(request, length)
+    title = f"{cfg.env} {cfg.algo} seed {request.seed} track {request.episode}"
+    _write(request, figures, title, f"{title} step {request.step}", figures.attributions)
+    if bool(record.terminated[length - 1]):
+        ended = "terminated"
+    elif bool(record.truncated[length - 1]):
+        ended = "truncated"
+    else:
+        ended = "stopped (--max-steps)"
+    total = float(record.rewards[:length].sum())
+    return (
+        f"{request.out} ({length} steps, episode {ended}, return {total:.2f}); "
+        f"attributions: {request.attributions}"
+    )
+
+
+def _explain_intersection(request: FigureRequest, cfg, trainer, agent_state) -> str:
+    """An Intersection run: replay evaluation episode ``request.episode`` and follow one slot."""
+    from xrl_jax.explain.figures import IntersectionEpisodeFigures, first_alive_slot
+
+    params = trainer.eval_params
+    max_steps = int(params.episode_steps)
+    if request.max_steps is not None:
+        max_steps = min(max_steps, request.max_steps)
+    _check_step(request, max_steps)
+    agent = trainer.agent
+    rollout = make_multiagent_episode_rollout(trainer.env, agent, max_steps)
+    record = jax.device_get(rollout(request.episode, jax.random.PRNGKey(request.key), params, agent_state))
+    slot = first_alive_slot(record) if request.slot is None else request.slot
+    if slot is None:
+        raise ExplainError(f"no car at step 0 of episode {request.episode}; pick one with --slot")
+    figures = IntersectionEpisodeFigures(
+        params,
+        record,
+        slot,
+        neutral=bool(getattr(agent.config, "neutral_object", False)),
+        mirrored=request.mirrored,
+    )
+    title = f"{cfg.env} {cfg.algo} seed {request.seed} episode {request.episode}"
+    step_title = figures.title(request.step, title) if not request.is_video else title
+    _write(request, figures, title, step_title, lambda: figures.attributions(all_slots=request.all_slots))
+    acted = np.asarray(record.acted)
+    total = float(np.sum(np.where(acted, np.asarray(record.rewards), 0.0)))
+    cars = len({int(c) for c in np.asarray(record.states.spawn_seq)[:, slot][acted[:, slot]]})
+    return (
+        f"{request.out} ({figures.length} steps, slot {slot}: {int(acted[:, slot].sum())} steps occupied by "
+        f"{cars} car(s); return of all agents {total:.2f}); attributions: {request.attributions}"
+    )
