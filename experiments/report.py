@@ -10,7 +10,7 @@ run with its baseline (Fig. 8), and P(explainable agent > its baseline) with its
 early in the run (Fig. 7). --controller adds each scenario's yardstick on the same evaluation: the
 hand-written centre-line driver on the racing tracks, the scripted driver on the Intersection.
 Folders that are still running or lost a seed are reported as far as they go, and marked
-incomplete.
+incomplete; a folder given twice (under any path) is reported once, with a note.
 """
 
 from __future__ import annotations
@@ -20,13 +20,14 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, fraction, positive_speed
+from cli_args import OneLineParser, fail, fraction, positive_speed
 
+PROG = "report.py"
 DRIVERS_DEFAULT = 0.0  # --controller without a speed: each driver's own (not a str: argparse would parse it)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = OneLineParser(prog="report.py", description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="results folders of experiments/run.py")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder of the report (created)")
     parser.add_argument("--controller", nargs="?", type=positive_speed, const=DRIVERS_DEFAULT,
@@ -48,12 +49,18 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from xrl_jax.report import ReportError, write_report
 
+    speed = None if args.controller in (None, DRIVERS_DEFAULT) else args.controller  # None: the defaults
     try:
-        speed = None if args.controller in (None, DRIVERS_DEFAULT) else args.controller  # None: the defaults
-        report = write_report(args.runs, args.out, speed, args.controller is not None, args.early)
+        report = write_report(
+            args.runs,
+            args.out,
+            speed,
+            args.controller is not None,
+            args.early,
+            note=lambda message: print(f"{PROG}: note: {message}", file=sys.stderr),
+        )
     except ReportError as err:
-        print(f"report.py: error: {err}", file=sys.stderr)
-        return 2
+        return fail(PROG, err)
     print(report.read_text())
     print(f"written: {report}")
     return 0

@@ -126,6 +126,37 @@ def test_report_cli_writes_tables_figures_and_report(folders, tmp_path, capsys):
     assert len(err) == 1 and "does not exist" in err[0]
 
 
+@pytest.mark.parametrize("where", ["an existing file", "below a file"])
+def test_report_cli_refuses_an_out_it_cannot_write_in_one_line(folders, tmp_path, capsys, where):
+    """Before: a 12-21-line traceback (FileExistsError, NotADirectoryError). Now one line, status 2,
+    before any folder is read."""
+    cli = load_script("report", "report_cli")
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    out, fragment = (
+        (blocker, "is a file") if where == "an existing file" else (blocker / "sub", "cannot create")
+    )
+    assert cli.main([str(folders["sac"]), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("report.py: error: ") and fragment in err[0], err
+    assert blocker.read_text() == "not a folder"
+
+
+def test_report_cli_reports_a_folder_given_twice_once_and_says_so(folders, tmp_path, capsys):
+    """The same folder twice (also under another name) is one run, not two rows of the same seeds;
+    a note on standard error says which was left out, and the report is written."""
+    cli = load_script("report", "report_cli")
+    sac, out = folders["sac"], tmp_path / "report"
+    again = tmp_path / "link"
+    again.symlink_to(sac)
+    assert cli.main([str(sac), str(folders["xsac"]), str(sac), str(again), "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"report.py: note: {sac} is given twice; reported once",
+                   f"report.py: note: {again} is the same folder as {sac}; reported once"]  # fmt: skip
+    rows = (out / "results_tracking.md").read_text().splitlines()[2:]
+    assert [row.split(" | ")[0] for row in rows] == ["| sac", "| xsac"]
+
+
 def test_write_report_reads_a_folder_without_any_evaluation(tmp_path):
     """A run that has only just started: no eval file yet. It is listed, incomplete, nothing fails."""
     folder = fake_run(tmp_path / "fresh", "tracking", "xdsac", "quick", [1.0, 2.0], missing=(0, 1))

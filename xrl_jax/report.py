@@ -31,7 +31,7 @@ ALGO_ORDER = ("sac", "xsac", "dsac", "xdsac")
 
 
 class ReportError(ValueError):
-    """A folder that is not a run; the message is one line."""
+    """A folder that is not a run, or a report folder that cannot be written; the message is one line."""
 
 
 @dataclass(frozen=True)
@@ -320,6 +320,7 @@ def write_report(
     controller_speed: float | None = None,
     controller: bool = False,
     early_fraction: float = EARLY_FRACTION,
+    note=None,
 ) -> Path:
     """Read ``folders`` and write ``out``/report.md with the tables (``results_<env>.md/.csv``),
     figures (``<env>.png``, ``sweep_<folder>.png``) and improvement probabilities
@@ -327,11 +328,42 @@ def write_report(
     returns the path of report.md. With ``controller`` or a ``controller_speed`` (m/s; None: each
     driver's default), the tables and figures also show each scenario's yardstick driven on the runs'
     evaluation (``controller.json``): the hand controller on the racing tracks, the scripted driver
-    on the Intersection."""
+    on the Intersection. A folder given twice is reported once (``note`` takes a line about it);
+    :class:`ReportError` (one line) when a folder is not a run or ``out`` cannot be written."""
     controller = controller or controller_speed is not None
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    runs = [read_run(folder) for folder in folders]
+    _make_report_folder(out)
+    runs = [read_run(folder) for folder in distinct_folders(folders, note)]
+    try:
+        return _write_report(runs, out, controller_speed, controller, early_fraction)
+    except OSError as err:  # a folder that turned unwritable, a full disk
+        raise ReportError(f"cannot write the report into {out}: {err.strerror or err}") from None
+
+
+def _make_report_folder(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise ReportError(f"--out {out} is a file; give a folder for the report")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ReportError(f"cannot create the report folder --out {out}: {err.strerror or err}") from None
+
+
+def distinct_folders(folders: list[str | Path], note=None) -> list[Path]:
+    """``folders`` with each results folder once (the same folder under two names counts once);
+    ``note`` takes one line per folder left out."""
+    seen: dict[Path, Path] = {}
+    for folder in map(Path, folders):
+        first = seen.setdefault(folder.resolve(), folder)
+        if first is not folder and note is not None:
+            again = "given twice" if first == folder else f"the same folder as {first}"
+            note(f"{folder} is {again}; reported once")
+    return list(seen.values())
+
+
+def _write_report(
+    runs: list[Run], out: Path, controller_speed, controller: bool, early_fraction: float
+) -> Path:
     lines = ["# Results report", "",
              "IQM with its 95 % stratified bootstrap CI over seeds (final evaluation). The paper's value "
              "stands beside a run that used its protocol (`--preset paper`); other presets are shorter "
