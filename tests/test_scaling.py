@@ -142,10 +142,12 @@ import run
 from xrl_jax import train
 from xrl_jax.train import hosts
 
-def vanish(*args, **kwargs):  # process 1 dies without a word, as a killed process would
+def vanish(*args, **kwargs):  # after the job's first collective, process 1 dies without a word
+    hosts.gathered(0)
     os._exit(9)
 
-def collect(*args, **kwargs):  # process 0 meets it in the job's next collective
+def collect(*args, **kwargs):  # process 0 meets the loss in the job's next collective
+    hosts.gathered(0)
     time.sleep(1)
     hosts.gathered(1)
 
@@ -157,8 +159,8 @@ sys.exit(run.main(sys.argv[2:]))
 def test_a_process_that_dies_mid_run_ends_the_others_in_one_line(tmp_path):
     """Before: a traceback, then ~70 lines of C++ stack as JAX's shutdown waits for the lost process
     and aborts. Now the collective's error (Gloo on CPU) ends process 0 at once, in one line, status 1,
-    saying how to resume. (A loss that only JAX's missed heartbeats reveal still ends in XLA's abort;
-    see run.py --help.)"""
+    saying how to resume. (A loss that only JAX's missed heartbeats reveal, e.g. before the job's
+    first collective has connected the processes, still ends in XLA's abort; see run.py --help.)"""
     out = tmp_path / "job"
     job = ["--preset", "smoke", "--quiet", "--out", str(out), "--coordinator", f"127.0.0.1:{_free_port()}",
            "--num-processes", "2"]  # fmt: skip
