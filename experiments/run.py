@@ -62,10 +62,10 @@ devices and hosts (README "Scaling out"):
   the summary. A job whose processes have not all joined (or whose coordinator does not answer)
   within --coordinator-timeout ends in one line. A process that dies mid-run ends the job: the
   others stop with one line when a collective reports it (at once on CPU), but when only JAX's
-  missed heartbeats reveal it (a collective that waits for the lost peer, as a GPU's may; a process
-  lost before the job's first collective; or one busy for over 100 s), XLA aborts them with a page of C++ stack that Python
-  cannot catch (status 134). Either way the committed checkpoints are kept. Resume by starting
-  every process again with --resume DIR.
+  missed heartbeats reveal it (a collective that waits for the lost peer, as a GPU's may; a
+  process lost before the job's first collective; or one busy for over 100 s), XLA aborts them
+  with a page of C++ stack that Python cannot catch (status 134). Either way the committed
+  checkpoints are kept. Resume by starting every process again with --resume DIR.
 
 results folder:
   config.json (resolved config, versions, git commit), metrics/seed_<i>.jsonl (every
