@@ -1,0 +1,156 @@
+"""A run's results from its folder's records: every seed's final evaluation and, over seeds, the IQM
+with its 95 % stratified bootstrap confidence interval (:mod:`xrl_jax.stats`), the paper's protocol,
+at the end and at every evaluation step. A hyper-parameter sweep (``--sweep``) is summarised per
+sweep point, over that point's seeds, never over points."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from xrl_jax import stats
+from xrl_jax.config import scenario
+from xrl_jax.runs.folder import eval_file, member_stem, metrics_file, read_rows
+
+
+def summary_metrics(env: str) -> tuple[tuple[str, str], ...]:
+    """The (key, label) pairs reported over seeds for ``env``."""
+    return scenario(env).summary_metrics
+
+
+def _member_stems(cfg) -> list[str]:
+    """The file stem of every member (point-major): ``seed_<s>``, or ``point_<p>_seed_<s>`` in a sweep."""
+    return [member_stem(cfg, member) for member in range(cfg.num_members)]
+
+
+def _member_evaluations(out: Path, cfg) -> list[dict[int, dict]]:
+    """Per member (point-major; in a plain run, per seed), its evaluation rows by step (the last row
+    of a step wins: a resumed run rewrites)."""
+    return [
+        {r["step"]: r for r in read_rows(eval_file(out, stem)) if "step" in r} for stem in _member_stems(cfg)
+    ]
+
+
+def _aggregate(scores: np.ndarray) -> dict[str, Any]:
+    """IQM with its 95 % stratified bootstrap CI over seeds, the mean and the number of seeds."""
+    interval = stats.stratified_bootstrap_ci(scores, stats.iqm, confidence=0.95)
+    return {**interval.as_dict(), "mean": float(scores.mean()), "n": int(scores.size)}
+
+
+def aggregate_metrics(rows: list[dict], env: str) -> dict[str, Any]:
+    """:func:`_aggregate` of every summary metric over ``rows`` (one per seed); non-finite ones skipped."""
+    result = {}
+    for key, _ in summary_metrics(env):
+        scores = np.array([row.get(key, np.nan) for row in rows], np.float64)
+        if np.all(np.isfinite(scores)):
+            result[key] = _aggregate(scores)
+    return result
+
+
+def learning_curve(out: str | Path, cfg, point: int | None = None) -> list[dict[str, Any]]:
+    """The evaluation curve over seeds: at every evaluation step that all seeds reached, each summary
+    metric's IQM, 95 % stratified bootstrap CI, mean and per-seed values. A sweep has one curve per
+    point: pass ``point`` (curves never mix points)."""
+    evaluations = _member_evaluations(Path(out), cfg)
+    if point is None:
+        if cfg.num_points > 1:
+            raise ValueError(
+                f"a sweep has one learning curve per point; pass point= (0..{cfg.num_points - 1})"
+            )
+        point = 0
+    if not 0 <= point < cfg.num_points:
+        raise ValueError(f"point {point} is not in 0..{cfg.num_points - 1}")
+    return _curve([evaluations[m] for m in cfg.point_members(point)], cfg.env)
+
+
+def _curve(evaluations: list[dict[int, dict]], env: str) -> list[dict[str, Any]]:
+    steps = sorted(set.intersection(*(set(rows) for rows in evaluations))) if evaluations else []
+    curve = []
+    for step in steps:
+        rows = [by_step[step] for by_step in evaluations]
+        point = {"step": step, **aggregate_metrics(rows, env)}
+        for key in point:
+            if key != "step":
+                point[key]["per_seed"] = [float(row[key]) for row in rows]
+        curve.append(point)
+    return curve
+
+
+# What every record says about its member (run_folder.member_fields): in a plain run "point" is 0
+# and "sweep" is {}, which the summary leaves out so that it reads as before sweeps existed.
+_SWEEP_RECORD_FIELDS = ("point", "sweep")
+
+
+def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
+    """Final evaluation of every seed and, over seeds, the IQM with its 95 % stratified bootstrap CI;
+    ``curve`` holds the same statistics at every evaluation step (:func:`learning_curve`).
+
+    A sweep (``cfg.num_points > 1``) is summarised per point, never over points: top-level
+    ``aggregate`` is ``{}`` and ``curve`` is ``[]``; ``seeds`` lists the member stems
+    (``point_<p>_seed_<s>``) with a final evaluation, ``complete`` says whether every member has one,
+    ``per_seed`` (and ``training_tracks``) are keyed by member stem, and ``sweep`` holds
+    ``{"fields": [name, ...], "points": [{"point": p, "values": {name: value}, "seeds": [seed with a
+    final evaluation], "complete": bool, "aggregate": {...}, "curve": [...]}, ...]}`` with
+    ``aggregate`` and ``curve`` as in a plain run, over that point's seeds.
+    """
+    out = Path(out)
+    evaluations = _member_evaluations(out, cfg)
+    stems = _member_stems(cfg)
+    final = cfg.total_steps
+    summary: dict[str, Any] = {"env": cfg.env, "algo": cfg.algo, "preset": cfg.preset, "steps": final}
+    if cfg.num_points == 1:
+        finals = {seed: rows[final] for seed, rows in enumerate(evaluations) if final in rows}
+        summary |= {
+            "seeds": sorted(finals),
+            "complete": len(finals) == cfg.num_seeds,
+            "per_seed": {str(s): _per_seed_row(r, drop=_SWEEP_RECORD_FIELDS) for s, r in finals.items()},
+            "aggregate": aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
+            "curve": _curve(evaluations, cfg.env),
+        }
+    else:
+        finished = [m for m, rows in enumerate(evaluations) if final in rows]
+        points = []
+        for point, values in enumerate(cfg.sweep_points):
+            members = cfg.point_members(point)
+            finals = [evaluations[m][final] for m in members if final in evaluations[m]]
+            points.append({
+                "point": point,
+                "values": dict(values),
+                "seeds": [cfg.member_point_seed(m)[1] for m in members if final in evaluations[m]],
+                "complete": len(finals) == cfg.num_seeds,
+                "aggregate": aggregate_metrics(finals, cfg.env) if finals else {},
+                "curve": _curve([evaluations[m] for m in members], cfg.env),
+            })  # fmt: skip
+        summary |= {
+            "seeds": [stems[m] for m in finished],
+            "complete": len(finished) == cfg.num_members,
+            "per_seed": {stems[m]: _per_seed_row(evaluations[m][final]) for m in finished},
+            "aggregate": {},  # over points it would mix hyper-parameters: see sweep.points[i].aggregate
+            "curve": [],  # likewise: sweep.points[i].curve
+            "sweep": {"fields": [name for name, _ in cfg.sweep], "points": points},
+        }
+    if not cfg.multi_agent:
+        summary["training_tracks"] = _training_tracks(out, cfg)
+    return summary
+
+
+def _per_seed_row(row: dict, drop: tuple[str, ...] = ()) -> dict:
+    return {k: v for k, v in row.items() if k != "episode_returns" and k not in drop}
+
+
+def _training_tracks(out: Path, cfg) -> dict[str, Any]:
+    """What the seeds trained on: a fixed bank, or fresh tracks with each seed's count of distinct
+    tracks driven and of resets that found its feed empty (from its last metrics line), keyed by
+    seed (``"0"``) in a plain run and by member stem (``"point_0_seed_0"``) in a sweep."""
+    if not cfg.fresh_tracks:
+        return {"fresh": False, "bank": cfg.train_tracks}
+    used, reused = {}, {}
+    for member, stem in enumerate(_member_stems(cfg)):
+        key = str(cfg.member_point_seed(member)[1]) if cfg.num_points == 1 else stem
+        rows = [r for r in read_rows(metrics_file(out, stem)) if "rollout/tracks_used" in r]
+        if rows:
+            used[key] = int(rows[-1]["rollout/tracks_used"])
+            reused[key] = int(rows[-1]["rollout/tracks_reused"])
+    return {"fresh": True, "distinct_per_seed": used, "reused_per_seed": reused}
