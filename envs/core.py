@@ -137,6 +137,12 @@ class Dict(Space):
         return f"Dict({{{inner}}})"
 
 
+def action_size(space: Space) -> int:
+    """What an agent's action head has for ``space``: the choices of a Discrete space, the length of
+    a one-dimensional Box."""
+    return int(space.n) if isinstance(space, Discrete) else int(space.shape[0])
+
+
 # --------------------------------------------------------------------------------------------
 # Environment protocol
 # --------------------------------------------------------------------------------------------
