@@ -194,6 +194,17 @@ class FedStates:
     feed: TrackFeed
 
 
+def split_states(state) -> tuple[Any, TrackFeed | None]:
+    """``(envs' states, feed)`` of a vector env's state: the feed of :class:`FreshTrackEnvs`, None
+    for any other vector env (whose state is its envs' states)."""
+    return (state.envs, state.feed) if isinstance(state, FedStates) else (state, None)
+
+
+def join_states(envs, feed: TrackFeed | None):
+    """The inverse of :func:`split_states`."""
+    return envs if feed is None else FedStates(envs, feed)
+
+
 class FreshTrackEnvs(VmapWrapper):
     """``num_envs`` racing envs in lock-step that start every episode on the next track of their own
     feed of ``capacity`` tracks, with the auto-reset convention of :class:`envs.core.AutoResetWrapper`.
