@@ -137,6 +137,12 @@ class Dict(Space):
         return f"Dict({{{inner}}})"
 
 
+def action_size(space: Space) -> int:
+    """What an agent's action head has for ``space``: the choices of a Discrete space, the length of
+    a one-dimensional Box."""
+    return int(space.n) if isinstance(space, Discrete) else int(space.shape[0])
+
+
 # --------------------------------------------------------------------------------------------
 # Environment protocol
 # --------------------------------------------------------------------------------------------
@@ -280,6 +286,31 @@ class VmapWrapper(Wrapper):
         """One random action per env from the single-env action space."""
         space = self._env.action_space(params)
         return jax.vmap(space.sample)(jax.random.split(key, self.num_envs))
+
+    # What a trainer asks of any vector env besides reset and step; a vector env that brings its own
+    # tracks (envs.track_feed.FreshTrackEnvs) answers differently, these envs have nothing to add.
+
+    def reset_key(self, env_key: jax.Array, tracks_key: jax.Array) -> jax.Array:
+        """Which of a training member's keys seeds :meth:`reset`: here the envs' own key; a vector
+        env that feeds its envs tracks takes the member's track stream ``tracks_key`` instead."""
+        del tracks_key
+        return env_key
+
+    def refill(self, state, agree=lambda flag: flag):
+        """Upkeep between scans of steps, away from the per-step hot path, on states with leading
+        batch axes; ``agree`` turns a local decision into one shared by every device. None here."""
+        del agree
+        return state
+
+    def refill_bytes(self, state) -> int:
+        """Bytes that :meth:`refill` holds on top of ``state`` while it works (for memory plans)."""
+        del state
+        return 0
+
+    def counters(self, state) -> dict[str, jax.Array]:
+        """Counters worth reporting, from a state (e.g. how many tracks the envs drove so far)."""
+        del state
+        return {}
 
 
 def vmap_env(env: Environment, num_envs: int, auto_reset: bool = True) -> VmapWrapper:

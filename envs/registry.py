@@ -1,4 +1,5 @@
-"""``envs.make(name, **overrides) -> (env, params)``: the single entry point to the scenarios.
+"""``envs.make(name, **overrides) -> (env, params)``: the single entry point to the scenarios
+(``envs.action_space(name)``: a scenario's action space, without building its params).
 
 Names:
 
@@ -33,7 +34,7 @@ from typing import Any
 
 import jax
 
-from envs.core import Environment
+from envs.core import Environment, Space
 from envs.country_road import CountryRoad
 from envs.intersection import IntersectionEnv, IntersectionParams
 from envs.racing import RacingEnv
@@ -91,6 +92,17 @@ def make(name: str, **overrides) -> tuple[Environment, Any]:
     env_kwargs = {k: overrides.pop(k) for k in _TRACKING_OPTIONS if k in overrides}
     env = cls(discrete=discrete, **env_kwargs)
     return env, racing_params(env, **overrides)
+
+
+def action_space(name: str) -> Space:
+    """The (per-agent) action space of scenario ``name``, without building its params: no track is
+    generated."""
+    if name in _MULTI_AGENT:
+        return IntersectionEnv(discrete=_MULTI_AGENT[name]).action_space()
+    if name not in _SCENARIOS:
+        raise ValueError(f"unknown env name {name!r}; valid names: {', '.join(ENV_NAMES)}")
+    cls, discrete = _SCENARIOS[name]
+    return cls(discrete=discrete).action_space()
 
 
 def racing_params(env: RacingEnv, **overrides) -> RacingParams:

@@ -381,6 +381,7 @@ def bench_update(
     call runs ``updates`` updates over as many batches. FLOPs per update come from XLA's cost analysis
     of one compiled update (for the packed update: of its packed branches, xrl_jax.sets).
     """
+    import envs
     from xrl_jax.agents import make_agent
     from xrl_jax.config import preset, preset_train_fields
     from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
@@ -395,7 +396,8 @@ def bench_update(
     example = dummy_observation(ENV_OBSERVATIONS[env])
     variants = {"packed": config} if config.packed_rows is not None else {}
     variants["dense" if variants else "update"] = config.replace(dense_sets=True)
-    agents = {name: make_agent(c, example, 12 if discrete else 3) for name, c in variants.items()}
+    size = envs.action_size(envs.action_space(f"{env}_discrete" if discrete else env))
+    agents = {name: make_agent(c, example, size) for name, c in variants.items()}
     key = jax.random.PRNGKey(0)
     any_agent = next(iter(agents.values()))
     states = jax.jit(jax.vmap(any_agent.init))(jax.random.split(key, seeds))  # same parameters for all

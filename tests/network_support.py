@@ -7,6 +7,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
+import envs
 from xrl_jax import networks
 from xrl_jax.config import DISCRETE_ALGOS, preset
 from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture
@@ -26,8 +27,11 @@ count_params = costs.count_params
 
 
 def action_size(algo: str) -> int:
-    """The scenarios' sizes: 12 discrete actions, 3 continuous action dimensions."""
-    return 12 if algo in DISCRETE_ALGOS else 3
+    """The action size of ``algo``'s agents, the same in every scenario (12 discrete actions, 3
+    continuous action dimensions)."""
+    return envs.action_size(
+        envs.action_space("country_road_discrete" if algo in DISCRETE_ALGOS else "country_road")
+    )
 
 
 def make_test_networks(env: str, algo: str, **overrides) -> networks.Networks:

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from network_support import action_size as algo_action_size
 from network_support import float64_object_weights
 
 from xrl_jax import losses
@@ -657,7 +658,7 @@ def test_intersection_agent_acts_on_agent_batches_and_updates(algo):
     from xrl_jax.networks import ENV_OBSERVATIONS
 
     discrete = algo == "xdsac"
-    action_size = 12 if discrete else 3
+    action_size = algo_action_size(algo)
     example = intersection_observation(jax.random.PRNGKey(50), ())
     agent = make_agent(preset("smoke", "intersection", algo), example, action_size)
     assert agent.obs_shape == ENV_OBSERVATIONS["intersection"]

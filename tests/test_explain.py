@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from network_support import action_size
 
 from xrl_jax.agents import make_agent
 from xrl_jax.config import preset
@@ -39,9 +40,8 @@ def reference_weights(out) -> np.ndarray:
 
 @pytest.fixture(scope="module", params=["sac", "dsac", "xsac", "xdsac"])
 def agent_and_state(request):
-    discrete = request.param in ("dsac", "xdsac")
     agent = make_agent(
-        preset("smoke", "country_road", request.param), dummy_observation(SHAPE), 12 if discrete else 3
+        preset("smoke", "country_road", request.param), dummy_observation(SHAPE), action_size(request.param)
     )
     return agent, jax.jit(agent.init)(jax.random.PRNGKey(0))
 

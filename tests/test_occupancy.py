@@ -5,6 +5,7 @@ import itertools
 import jax
 import numpy as np
 import pytest
+from network_support import action_size
 
 from xrl_jax import occupancy
 from xrl_jax.agents import make_agent
@@ -54,8 +55,7 @@ def test_overflow_probability_counts_what_it_says():
 def test_update_cost_counts_the_packed_update_and_its_fallback():
     shape = ENV_OBSERVATIONS["country_road"]
     for algo in ("xdsac", "sac"):
-        size = 12 if algo == "xdsac" else 3
-        agent = make_agent(preset("smoke", "country_road", algo), dummy_observation(shape), size)
+        agent = make_agent(preset("smoke", "country_road", algo), dummy_observation(shape), action_size(algo))
         cost = occupancy.update_cost(agent, 16)
         assert cost["packed"] < 0.6 * cost["dense"]  # 512 of 1,600 slot rows per batch
         # A batch of 16 sets averages 462 cones, sd 22 (docs/set_occupancy.json): 512 rows are 2.3 sd

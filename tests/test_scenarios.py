@@ -232,6 +232,15 @@ def test_cone_collision_shape_is_strict_rounded_rectangle():
     np.testing.assert_array_equal(np.asarray(ring_geometry.cone_hits(x, y)), expected)
 
 
+def test_action_spaces_are_known_by_name_without_building_params():
+    """What a run's config.json and an agent need, without generating a track."""
+    for name in envs.ENV_NAMES:
+        size = envs.action_size(envs.action_space(name))
+        assert size == (12 if name.endswith("_discrete") else 3), name
+    with pytest.raises(ValueError, match="unknown env name"):
+        envs.action_space("racing")
+
+
 def test_discrete_table_maps_through_the_shared_control_path():
     env, continuous = envs.CountryRoad(discrete=True), envs.CountryRoad()
     assert env.action_space().n == 12 and continuous.action_space().shape == (3,)

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from network_support import action_size
 
 from xrl_jax import sets
 from xrl_jax.agents import make_agent
@@ -102,7 +103,7 @@ def agent_pair(env: str, algo: str, rows: float, **changes):
         "state": jnp.zeros(shape.state_dim),
         shape.set_key: jnp.zeros((shape.num_objects, shape.object_features)),
     }
-    size = 12 if algo in DISCRETE_ALGOS else 3
+    size = action_size(algo)
     return make_agent(config, example, size), make_agent(config.replace(dense_sets=True), example, size)
 
 

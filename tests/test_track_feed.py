@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 
 import envs
-from envs.track_feed import init_feed, refill_feed, reset_with_feed, step_with_feed, writable
+from envs.track_feed import (
+    FreshTrackEnvs,
+    init_feed,
+    refill_feed,
+    reset_with_feed,
+    step_with_feed,
+    writable,
+)
 from envs.track_generator import generate_track
 
 CAPACITY, NUM_ENVS = 12, 4
@@ -126,3 +133,36 @@ def test_bad_arguments_are_refused(env_and_template, feed_functions):
     feed = feed_functions[1](KEY)
     with pytest.raises(ValueError, match=r"1\.\.capacity"):
         writable(feed, CAPACITY + 1)
+
+
+def test_the_vector_env_drives_exactly_as_the_feed_functions(env_and_template, feed_functions):
+    """:class:`FreshTrackEnvs` is the functions above behind the reset/step interface of any vector
+    env: its reset key is the feed's stream, its state the envs' states and the feed, and its refill
+    (on a batch of feeds) writes half a feed when every track fits."""
+    env, template = env_and_template
+    _, _, step, refill = feed_functions
+    venv = FreshTrackEnvs(env, NUM_ENVS, CAPACITY, CAPACITY // 2)
+    assert venv.reset_key(jax.random.PRNGKey(0), KEY) is KEY
+    obs, fed = jax.jit(venv.reset)(KEY, template)
+    # The same computation compiled the same way (params as an argument, not a folded constant).
+    expected_obs, states, feed = jax.jit(
+        lambda key, params: reset_with_feed(env, init_feed(env, params, key, CAPACITY, NUM_ENVS))
+    )(KEY, template)
+    actions = np.stack([DRIVE, [np.nan] * 3, DRIVE, DRIVE]).astype(np.float32)
+    stepped = jax.jit(venv.step)(jax.random.PRNGKey(5), fed, actions, template)
+    expected = step(jax.random.PRNGKey(5), states, actions, feed)
+    for got, want in [(obs, expected_obs), (fed, (states, feed)), (stepped[0], expected[0]),
+                      (stepped[1], (expected[1], expected[-1])), (stepped[2:], expected[2:-1])]:  # fmt: skip
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # A refill on a batch of one feed: one slot is free (env 1 moved on), so a refill of one track
+    # writes it and one of half a feed waits until all of it fits.
+    batch = jax.tree.map(lambda leaf: leaf[None], stepped[1])
+    assert int(jax.jit(venv.refill)(batch).feed.generated[0]) == CAPACITY
+    one_track = FreshTrackEnvs(env, NUM_ENVS, CAPACITY, 1)
+    refilled = jax.jit(one_track.refill)(batch).feed
+    manual = refill(expected[-1], 1)
+    assert int(refilled.generated[0]) == int(manual.generated) == CAPACITY + 1
+    np.testing.assert_array_equal(refilled.slot_number[0], manual.slot_number)
+    counters = {name: int(value) for name, value in venv.counters(stepped[1]).items()}
+    assert counters == {"tracks_used": NUM_ENVS + 1, "tracks_reused": 0}

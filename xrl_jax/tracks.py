@@ -1,6 +1,6 @@
 """Environments for a run: the training track bank and the fixed evaluation tracks, cached on disk
-(generating even a few tracks compiles for ~30 s on CPU). Below the evaluation and the trainer, which
-both drive on these banks."""
+(generating even a few tracks compiles for ~30 s on CPU), and the trainer's vector env, which restarts
+episodes as the config asks. Below the evaluation and the trainer, which both drive on these banks."""
 
 from __future__ import annotations
 
@@ -18,8 +18,10 @@ import envs.track
 import envs.track_cones
 import envs.track_generator
 import envs.track_shape
+from envs.core import VmapWrapper, vmap_env
 from envs.racing import with_bank
 from envs.track import Track
+from envs.track_feed import FreshTrackEnvs
 from envs.track_generator import make_track_bank
 from xrl_jax.config import TrainConfig
 
@@ -94,3 +96,15 @@ def racing_env(env_name: str, *banks):
     env, params = envs.make(env_name, track=jax.tree.map(lambda leaf: leaf[0], banks[0]))
     attach = jax.jit(lambda params, bank: env.prepare(with_bank(params, bank)))
     return (env, *(attach(params, bank) for bank in banks))
+
+
+def vector_env(cfg: TrainConfig, env) -> VmapWrapper:
+    """The ``num_envs`` envs of one training member, restarting their episodes the config's way: the
+    multi-agent env restarts itself; racing envs start each episode on a fresh track of the member's
+    feed (refilled half a feed at a time), or with ``train_tracks`` > 0 on one drawn from the fixed
+    bank (auto-reset)."""
+    if cfg.multi_agent:
+        return VmapWrapper(env, cfg.num_envs)
+    if cfg.fresh_tracks:
+        return FreshTrackEnvs(env, cfg.num_envs, cfg.track_feed_size, cfg.track_feed_size // 2)
+    return vmap_env(env, cfg.num_envs)

@@ -59,8 +59,7 @@ def run_metadata(argv: list[str] | None = None) -> dict[str, Any]:
 def config_document(cfg, argv: list[str] | None = None) -> dict[str, Any]:
     """The content of ``config.json``: the fully resolved config (incl. resolved agent defaults)."""
     agent = cfg.agent
-    action_size = 12 if agent.is_discrete else 3
-    hp = make_hparams(agent, action_size)
+    hp = make_hparams(agent, envs.action_size(envs.action_space(cfg.env_name)))
     resolved = {
         "alpha_lr": agent.resolved_alpha_lr(),
         "epsilon_random": agent.resolved_epsilon_random(),

@@ -5,7 +5,8 @@ over seeds, driven by a host loop between chunks. Its configuration (:class:`Tra
 Modules, by what they hold:
 
 * :mod:`~xrl_jax.train.episodes`: the rolling window of finished episodes (rollout metrics);
-* :mod:`~xrl_jax.train.chunk`: the run state, the compiled chunk and its report (:func:`make_train`);
+* :mod:`~xrl_jax.train.step`: one member's run state, its start and one vector step of its envs;
+* :mod:`~xrl_jax.train.chunk`: the compiled chunk over members and devices, its report (:func:`make_train`);
 * :mod:`~xrl_jax.train.memory`: bytes per seed and the seed groups that fit;
 * :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`);
 * :mod:`~xrl_jax.train.restore`: a run's checkpoint groups, for a resume and for readers of a folder;
@@ -26,11 +27,12 @@ from xrl_jax.config import (
 )
 from xrl_jax.runs.folder import write_atomic
 from xrl_jax.tracks import cache_dir, cached_track_bank, make_envs, track_cache_path
-from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, make_train
+from xrl_jax.train.chunk import ChunkReport, Trainer, get_trainer, make_train
 from xrl_jax.train.evaluate_run import evaluate_run
 from xrl_jax.train.loop import DiskFullError, DivergenceError, train
 from xrl_jax.train.memory import MemoryPlanError, estimate_seed_bytes, plan_memory
 from xrl_jax.train.restore import load_trained_agent, load_trained_agents
+from xrl_jax.train.step import RunState
 
 __all__ = [
     "ENVS",

@@ -57,12 +57,12 @@ def estimate_seed_bytes(trainer: Trainer) -> dict[str, int]:
     # float32 activations kept for the backward pass, gradients and XLA temporaries: ~4 copies.
     workspace = 4 * 4 * cfg.batch_size * (per_sample + obs.state_dim + obs.object_features * obs.num_objects)
     eval_bytes = 4 * 4 * cfg.eval_episodes * objects * a.actor_width * a.actor_depth
-    # Fresh tracks: the seed's feed, plus a refill's new half feed before it is written in.
-    feed = tree_bytes(abstract.feed) * 3 // 2
+    # The vector env's state (on fresh tracks with the seed's feed), plus what its refill holds.
+    refill = trainer.venv.refill_bytes(abstract.venv_state)
     sizes = {
         "buffer": tree_bytes(abstract.buffer),
         "agent": tree_bytes(abstract.agent),
-        "env": tree_bytes((abstract.env_state, abstract.obs)) + feed,
+        "env": tree_bytes((abstract.venv_state, abstract.obs)) + refill,
         "workspace_estimate": int(workspace + eval_bytes),
     }
     sizes["total"] = sum(sizes.values())

@@ -1,0 +1,282 @@
+"""One member's part of the compiled chunk: its run state, its start, and one vector step of its
+envs (act, step the envs, store the transitions, update), for racing envs and for the multi-agent
+intersection. The functions take the member's fixed pieces (:class:`MemberParts`) first;
+:mod:`xrl_jax.train.chunk` scans them, vmaps them over members and spreads them over devices.
+
+The envs come as one vector env (:func:`xrl_jax.tracks.vector_env`) whatever restarts their
+episodes: auto-reset on a fixed track bank, a fresh-track feed, or the multi-agent env itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from envs.core import VmapWrapper, action_size
+from envs.track_feed import join_states, split_states
+from xrl_jax.agents import Agent, AgentState, make_agent
+from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_add_packed, buffer_init, buffer_sample
+from xrl_jax.config import TrainConfig
+from xrl_jax.tracks import vector_env
+from xrl_jax.train.episodes import EARLY_TERMINATION_REWARD, EpisodeWindow, window_add, window_init
+
+
+@struct.dataclass
+class RunState:
+    """One member's whole training state (a leading member axis when batched).
+
+    The vector env's state (:attr:`venv_state`) is kept in two fields, the envs' own states and, on
+    fresh tracks, the feed they share: the layout checkpoints have always had, so that earlier runs
+    still restore (orbax matches the fields by name)."""
+
+    agent: AgentState
+    buffer: ReplayBuffer
+    env_state: Any  # the vector env's per-env states
+    obs: Any
+    key: jax.Array
+    eval_key: jax.Array
+    episode_return: jax.Array  # (actors,) running return of the current episodes
+    episode_length: jax.Array  # (actors,)
+    window: EpisodeWindow
+    feed: Any = None  # on fresh tracks: the envs' track feed (envs.track_feed.FreshTrackEnvs)
+
+    @property
+    def venv_state(self):
+        """The vector env's state, whole."""
+        return join_states(self.env_state, self.feed)
+
+    def with_venv_state(self, venv_state, **changes) -> RunState:
+        env_state, feed = split_states(venv_state)
+        return self.replace(env_state=env_state, feed=feed, **changes)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MemberParts:
+    """What one member's steps are built from: the config, its vector env and the params it steps
+    with, the agent, and the shapes that the steps' branches must agree on."""
+
+    cfg: TrainConfig
+    venv: VmapWrapper
+    params: Any
+    agent: Agent
+    obs_example: Any  # one agent's observation (zeros)
+    actors: tuple[int, ...]  # the batch shape of one acting step: envs, or envs x vehicle slots
+    float_dtype: Any
+    metric_shapes: Any = None  # the update's metrics
+
+
+def member_parts(cfg: TrainConfig, env, params) -> MemberParts:
+    """The agent and the vector env for ``env`` (racing or multi-agent) under ``cfg``."""
+    obs_shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0), params)[0]
+    actors = (cfg.num_envs,)
+    if cfg.multi_agent:  # observations carry a leading agent-slot axis; the agent sees one agent's view
+        actors = (cfg.num_envs, int(env.num_agents))
+        obs_shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[1:], s.dtype), obs_shapes)
+    obs_example = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), obs_shapes)
+    agent = make_agent(cfg.agent, obs_example, action_size(env.action_space(params)))
+    parts = MemberParts(cfg, vector_env(cfg, env), params, agent, obs_example, actors, jnp.result_type(float))
+    abstract_agent = jax.eval_shape(agent.init, jax.random.PRNGKey(0), obs_example)
+    abstract_buffer = jax.eval_shape(lambda: new_buffer(parts, max(cfg.batch_size, math.prod(actors))))
+    update = functools.partial(sample_and_update, parts)
+    metric_shapes = jax.eval_shape(update, abstract_agent, abstract_buffer, jax.random.PRNGKey(0))[1]
+    return dataclasses.replace(parts, metric_shapes=metric_shapes)
+
+
+def new_buffer(parts: MemberParts, capacity: int) -> ReplayBuffer:
+    """An empty replay buffer; multi-agent transitions are packed, one per row."""
+    cfg = parts.cfg
+    columns = 1 if cfg.multi_agent else cfg.num_envs
+    action_example = parts.agent.random_action(jax.random.PRNGKey(0))
+    return buffer_init(parts.obs_example, action_example, capacity, columns, layout=cfg.buffer_layout)
+
+
+def init_member(parts: MemberParts, base_seed, index, hparams) -> RunState:
+    """Member ``index`` of a run with base seed ``base_seed``: its keys fold ``index`` into the base
+    seed's, its tracks (on fresh tracks) come from a stream of its own, apart from the agent's and
+    the envs' keys."""
+    cfg = parts.cfg
+    key = jax.random.fold_in(jax.random.PRNGKey(base_seed), index)
+    agent_key, env_key, run_key, eval_key = jax.random.split(key, 4)
+    tracks_key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(cfg.track_seed), base_seed), index)
+    obs, venv_state = parts.venv.reset(parts.venv.reset_key(env_key, tracks_key), parts.params)
+    env_state, feed = split_states(venv_state)
+    return RunState(
+        agent=parts.agent.init(agent_key, parts.obs_example, hparams),
+        buffer=new_buffer(parts, cfg.buffer_size),
+        env_state=env_state,
+        feed=feed,
+        obs=obs,
+        key=run_key,
+        eval_key=eval_key,
+        episode_return=jnp.zeros(parts.actors, parts.float_dtype),
+        episode_length=jnp.zeros(parts.actors, jnp.int32),
+        window=window_init(parts.float_dtype),
+    )
+
+
+def sample_and_update(parts: MemberParts, agent_state, buffer, key):
+    sample_key, update_key = jax.random.split(key)
+    data = buffer_sample(buffer, sample_key, parts.cfg.batch_size)
+    data["truncated"] = jnp.zeros_like(data["terminated"])  # stored truncations are bootstrapped
+    return parts.agent.update(update_key, agent_state, data)
+
+
+def zero_metrics(parts: MemberParts):
+    return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), parts.metric_shapes)
+
+
+def maybe_reinitialise(parts: MemberParts, agent_state, first_transition, key):
+    """Primacy-bias reset (docs/carenv-intersection.md §8.6): a fresh agent (same traced hyper-parameters)
+    whenever a step counted from 1 in this vector step is a multiple of ``reinit_steps``."""
+    period = parts.cfg.reinit_steps
+    if not period:
+        return agent_state
+    last = first_transition + parts.cfg.num_envs - 1
+    hit = (last // period) * period >= jnp.maximum(first_transition, 1)  # unbatched: a real branch
+    return jax.lax.cond(
+        hit, lambda a: parts.agent.init(key, parts.obs_example, a.hparams), lambda a: a, agent_state
+    )
+
+
+def act_and_step(parts: MemberParts, state: RunState, t):
+    """The common start of a vector step: (re-initialise,) act (random during warm-up), step the
+    envs. Returns the next run key, the update key, the agent state, the action, which envs are
+    still warming up and the env step's outputs."""
+    key, act_key, random_key, env_key, update_key, reinit_key = jax.random.split(state.key, 6)
+    num_envs, agent = parts.cfg.num_envs, parts.agent
+    first_transition = t * num_envs
+    agent_state = maybe_reinitialise(parts, state.agent, first_transition, reinit_key)
+    policy_action = agent.act(act_key, agent_state, state.obs, "train")
+    random_action = agent.random_action(random_key, parts.actors)
+    warm_env = first_transition + jnp.arange(num_envs) < parts.cfg.warmup_steps
+    warm = warm_env.reshape(warm_env.shape + (1,) * (policy_action.ndim - 1))
+    action = jnp.where(warm, random_action, policy_action)
+    step = parts.venv.step(env_key, state.venv_state, action, parts.params)
+    return key, update_key, agent_state, action, warm_env, step
+
+
+def episode_bookkeeping(parts: MemberParts, state: RunState, reward, counted, done, terminated, velocity):
+    """Per-actor running episode return and length (actors: envs, or env × vehicle slot);
+    finished episodes enter the rolling window and restart from zero."""
+    episode_return = state.episode_return + reward
+    episode_length = state.episode_length + counted.astype(jnp.int32)
+    early = terminated & (reward < EARLY_TERMINATION_REWARD)
+    velocity = jnp.broadcast_to(velocity, done.shape)
+    window = window_add(
+        state.window, *(x.reshape(-1) for x in (done, episode_return, episode_length, early, velocity))
+    )
+    return {
+        "episode_return": jnp.where(done, 0.0, episode_return).astype(parts.float_dtype),
+        "episode_length": jnp.where(done, 0, episode_length),
+        "window": window,
+    }
+
+
+def racing_step(parts: MemberParts, state: RunState, t):
+    """One step of E racing envs: E transitions stored, then (after warm-up) one gradient step per
+    transition, as a ``lax.scan`` over E sampled batches."""
+    num_envs, warmup = parts.cfg.num_envs, parts.cfg.warmup_steps
+    key, update_key, agent_state, action, _, step = act_and_step(parts, state, t)
+    next_obs, venv_state, reward, terminated, truncated, info = step
+    first_transition = t * num_envs
+    buffer = buffer_add(
+        state.buffer, state.obs, action, reward, terminated, truncated,
+        next_obs=info["final_obs"] if parts.cfg.buffer_layout == "explicit" else None,
+    )  # fmt: skip
+
+    def scan_updates(agent_state, inputs):
+        j, key = inputs
+        active = first_transition + j >= warmup  # unbatched over seeds: a real branch
+        agent_state, metrics = jax.lax.cond(
+            active,
+            lambda a: sample_and_update(parts, a, buffer, key),
+            lambda a: (a, zero_metrics(parts)),
+            agent_state,
+        )
+        return agent_state, (metrics, active)
+
+    agent_state, (metrics, updated) = jax.lax.scan(
+        scan_updates, agent_state, (jnp.arange(num_envs), jax.random.split(update_key, num_envs))
+    )
+    done = terminated | truncated
+    new_state = state.with_venv_state(
+        venv_state, agent=agent_state, buffer=buffer, obs=next_obs, key=key,
+        **episode_bookkeeping(parts, state, reward, jnp.ones(done.shape, bool), done, terminated,
+                              info["avg_track_velocity"]),
+    )  # fmt: skip
+    out = {
+        "reward_sum": jnp.sum(jnp.where(truncated, 0.0, reward)),
+        "reward_count": jnp.sum(~truncated, dtype=jnp.int32),
+        "metrics": jax.tree.map(lambda m: jnp.sum(jnp.where(updated, m, 0), axis=0), metrics),
+        "updates": jnp.sum(updated, dtype=jnp.int32),
+    }
+    return new_state, out
+
+
+def multi_agent_step(parts: MemberParts, state: RunState, t):
+    """One step of E multi-agent envs: every agent alive at the start of the step acts; its
+    transition is stored (packed) and, after warm-up, followed by one gradient step
+    (docs/carenv-intersection.md §8.5: updates = agent transitions, 0..8 per env step, as an exact
+    ``while_loop``)."""
+    key, update_key, agent_state, action, warm_env, step = act_and_step(parts, state, t)
+    next_obs, venv_state, reward, terminated, truncated, info = step
+    acted = info["acted"]
+
+    def flat(x):
+        return x.reshape((math.prod(parts.actors), *x.shape[2:]))
+
+    buffer = buffer_add_packed(
+        state.buffer,
+        jax.tree.map(flat, state.obs),
+        flat(action),
+        flat(reward),
+        flat(terminated & acted),  # 60 s restarts stay bootstrapped (docs/carenv-intersection.md §9 Q8)
+        jax.tree.map(flat, info["final_obs"]),
+        flat(acted),
+    )
+    owed = jnp.sum(acted & ~warm_env[:, None], dtype=jnp.int32)
+
+    def keep_updating(carry):
+        return carry[0] < owed
+
+    def one_update(carry):
+        count, agent_state, key, totals = carry
+        key, sub = jax.random.split(key)
+        agent_state, metrics = sample_and_update(parts, agent_state, buffer, sub)
+        return count + 1, agent_state, key, jax.tree.map(jnp.add, totals, metrics)
+
+    _, agent_state, _, metric_sums = jax.lax.while_loop(
+        keep_updating, one_update, (jnp.zeros((), jnp.int32), agent_state, update_key, zero_metrics(parts))
+    )
+    reward = jnp.where(acted, reward, 0.0)
+    agent_done = acted & (terminated | truncated)
+    ended = info["episode_end"]
+    new_state = state.with_venv_state(
+        venv_state, agent=agent_state, buffer=buffer, obs=next_obs, key=key,
+        **episode_bookkeeping(parts, state, reward, acted, agent_done, terminated,
+                              info["mean_velocity"][:, None]),
+    )  # fmt: skip
+    out = {
+        "reward_sum": jnp.sum(reward),
+        "reward_count": jnp.sum(acted, dtype=jnp.int32),
+        "metrics": metric_sums,
+        "updates": owed,
+        "episodes_ended": jnp.sum(ended, dtype=jnp.int32),
+        "trips": jnp.sum(jnp.where(ended, info["trips_completed"], 0)),
+        "early_terminations": jnp.sum(
+            jnp.where(ended, info["come_off_vehicles"] + info["collided_vehicles"], 0)
+        ),
+    }
+    return new_state, out
+
+
+def vector_step(parts: MemberParts):
+    """``(state, t) -> (state, outputs)``: one vector step of the member's envs."""
+    step = multi_agent_step if parts.cfg.multi_agent else racing_step
+    return lambda state, t: step(parts, state, t)
