@@ -32,7 +32,7 @@ presets:
   quick  80k steps per seed, a buffer that keeps every transition, width-64 networks, batch
          128, and optimisation constants for a short budget (initial alpha 0.005, alpha lr 1e-3,
          actor and critic lr 6e-4, all three decaying linearly to zero by the last update, gamma
-         0.98): two Tracking XDSAC seeds take ~14 min on a 2-core CPU (measured; XSAC ~1.9x)
+         0.98); the README's Results give each run's wall time
   smoke  a few hundred steps with tiny networks, for tests
   intersection (multi-agent, one shared policy): paper = the released configs (5e6 env steps,
          buffer 1.5e7 agent transitions, batch 512, 2 envs, re-initialisation every 500,001 steps,
