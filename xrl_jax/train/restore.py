@@ -48,7 +48,7 @@ def first_nonfinite_leaf(tree) -> str:
         leaf = np.asarray(leaf)
         if np.issubdtype(leaf.dtype, np.floating) and not np.all(np.isfinite(leaf)):
             return jax.tree_util.keystr(path)
-    return "state"
+    return "(none found)"
 
 
 def all_finite(tree) -> bool:
