@@ -3,7 +3,7 @@
 The original trainer generates a new random track at every reset (docs/carenv-single-agent.md §5),
 so a 10⁶-step run drives thousands of different tracks. Generating inside ``reset`` is a poor fit
 for vectorised training: under ``vmap`` an auto-reset computes the reset of every env at every step,
-i.e. one track generation (~3 ms on a CPU core) per env step. A :class:`TrackFeed` instead keeps
+i.e. one track generation per env step, which costs far more than the step itself. A :class:`TrackFeed` instead keeps
 ``capacity`` generated tracks ahead, prepared as a bank (tables and reset observations, so a reset
 stays a gather), and hands them out in order:
 
@@ -239,7 +239,7 @@ class FreshTrackEnvs(VmapWrapper):
         """New tracks into every feed's free slots (a batch of states: leading axes) once some feed can
         take all ``refill_count`` of them; ``agree`` shares that decision between devices, so that it
         is a real branch: upkeep without a refill generates nothing. Which track an episode gets does
-        not depend on when refills happen; a track costs ~3 ms on a CPU core."""
+        not depend on when refills happen."""
         room = jnp.any(writable(state.feed, self.refill_count)[2][..., -1])  # room for all of them
         feed = jax.lax.cond(
             agree(room), lambda f: refill_feed(self._env, f, self.refill_count), lambda f: f, state.feed

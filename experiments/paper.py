@@ -73,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-controller",
         action="store_true",
         help="leave the yardsticks out of the report (hand controller, scripted Intersection driver; "
-        "~30 s per env)",
+        "they drive every evaluation episode)",
     )
     parser.add_argument(
         "--utilisation",

@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controller", nargs="?", type=positive_speed, const=DRIVERS_DEFAULT,
                         metavar="M_PER_S",
                         help="also drive each scenario's yardstick on the runs' evaluation and show it in "
-                             "the tables and figures (~30 s per env): the hand controller of "
+                             "the tables and figures (it drives every evaluation episode): the hand controller of "
                              "docs/carenv-single-agent.md §8.3 on the racing tracks (default 8 m/s), the "
                              "scripted driver of envs/intersection_driver.py on the Intersection (default "
                              "cruise speed 10 m/s); a speed given here is used for every "

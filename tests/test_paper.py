@@ -2,6 +2,7 @@
 The whole campaign at the smoke preset is a slow test (15 runs)."""
 
 import json
+import shutil
 
 import pytest
 from train_support import call, load_script, one_line_error, prepare_cache
@@ -59,6 +60,12 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     assert "tracking-dsac: starting" in err and "report:" in text
     status, _, err = call(paper, capsys, *args)
     assert status == 0 and "tracking-dsac: done, skipped" in err
+    # A report that cannot be written fails in one line and keeps the finished runs.
+    shutil.rmtree(out / "report")
+    (out / "report").write_text("not a folder")
+    status, _, err = call(paper, capsys, *args)
+    assert status == 1 and "the runs are kept, but the report failed" in err and "is a file" in err
+    assert "Traceback" not in err and (out / "tracking-dsac" / "summary.json").is_file()
 
 
 def test_bad_input_fails_in_one_line(paper, capsys, tmp_path):

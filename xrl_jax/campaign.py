@@ -175,7 +175,7 @@ def format_plan(rows: list[dict], utilisation: float) -> list[str]:
     lines.append(
         f"total still to run: {cpu:,.0f} CPU hours at {CPU_FLOPS / 1e9:.0f} GFLOP/s (this 2-core CPU), "
         f"{h100:,.1f} H100 hours at {utilisation:.0%} of {H100_FLOPS / 1e12:.0f} TFLOP/s; updates only "
-        "(on this CPU a vector step of the envs costs ~22 us against ~40 ms for an update: bench.py tracks)"
+        "(an env step costs a small fraction of an update: docs/benchmarks.md)"
     )
     return lines
 
@@ -205,7 +205,7 @@ def run_campaign(
     every started run into ``out/report``. ``say`` takes progress notes, ``show`` the report's path;
     ``again`` is the command that continues the campaign. Returns the exit status: a run's own when
     it was stopped by a signal or refused its options, 1 when a run did not finish, else 0."""
-    from xrl_jax.report import write_report
+    from xrl_jax.report import ReportError, write_report
     from xrl_jax.runs.folder import has_config
 
     out.mkdir(parents=True, exist_ok=True)
@@ -231,7 +231,11 @@ def run_campaign(
         if code != 0:
             failed.append(planned.name)
     folders = [out / r.name for r in runs if has_config(out / r.name)]
-    report = write_report(folders, out / "report", controller=settings.controller)
+    try:
+        report = write_report(folders, out / "report", controller=settings.controller)
+    except ReportError as err:  # the runs are kept; only the report is missing
+        say(f"the runs are kept, but the report failed: {err}")
+        return 1
     show(f"report: {report}")
     if failed:
         say(f"these runs did not finish: {', '.join(failed)} (see their messages above)")

@@ -44,8 +44,8 @@ def file_digests(folder: Path) -> dict[str, str]:
 
     Files rather than arrays: a damaged file is found before orbax reads it (orbax and tensorstore
     report damage inconsistently, and some damage they do not notice at all), the metadata files
-    are covered too, and nothing is copied off the device. blake2b hashes ~1 GB/s on one core, cheap
-    next to writing the same bytes."""
+    are covered too, and nothing is copied off the device. Hashing is cheap next to writing the
+    same bytes."""
     out = {}
     for path in sorted(p for p in folder.rglob("*") if p.is_file() and p.name != MANIFEST_NAME):
         digest = hashlib.blake2b(digest_size=16)

@@ -1,5 +1,5 @@
 """Environments for a run: the training track bank and the fixed evaluation tracks, cached on disk
-(generating even a few tracks compiles for ~30 s on CPU), and the trainer's vector env, which restarts
+(the generator is slow to compile, so even a few tracks are worth keeping), and the trainer's vector env, which restarts
 episodes as the config asks. Below the evaluation and the trainer, which both drive on these banks."""
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def track_cache_path(seed: int, size: int) -> Path:
 
 
 def cached_track_bank(seed: int, size: int):
-    """``size`` generated tracks from ``seed``, cached on disk (generation compiles for ~30 s on CPU).
+    """``size`` generated tracks from ``seed``, cached on disk (the generator is slow to compile).
 
     The file name carries a hash of the generator's source and the backend, so a changed generator
     never serves stale tracks. Writes are atomic (temporary file + rename).
