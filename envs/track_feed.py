@@ -3,9 +3,9 @@
 The original trainer generates a new random track at every reset (docs/carenv-single-agent.md §5),
 so a 10⁶-step run drives thousands of different tracks. Generating inside ``reset`` is a poor fit
 for vectorised training: under ``vmap`` an auto-reset computes the reset of every env at every step,
-i.e. one track generation per env step, which costs far more than the step itself. A :class:`TrackFeed` instead keeps
-``capacity`` generated tracks ahead, prepared as a bank (tables and reset observations, so a reset
-stays a gather), and hands them out in order:
+i.e. one track generation per env step, which costs far more than the step itself. A
+:class:`TrackFeed` instead keeps ``capacity`` generated tracks ahead, prepared as a bank (tables and
+reset observations, so a reset stays a gather), and hands them out in order:
 
 * track number ``n`` of a feed is ``generate_track(fold_in(key, n))``, a pure function of the feed's
   key and ``n``; episodes take the numbers 0, 1, 2, ... in the order they start (envs ending at the

@@ -32,12 +32,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", required=True, metavar="DIR", help="folder of the report (created)")
     parser.add_argument("--controller", nargs="?", type=positive_speed, const=DRIVERS_DEFAULT,
                         metavar="M_PER_S",
-                        help="also drive each scenario's yardstick on the runs' evaluation and show it in "
-                             "the tables and figures (it drives every evaluation episode): the hand controller of "
-                             "docs/carenv-single-agent.md §8.3 on the racing tracks (default 8 m/s), the "
-                             "scripted driver of envs/intersection_driver.py on the Intersection (default "
-                             "cruise speed 10 m/s); a speed given here is used for every "
-                             "scenario")  # fmt: skip
+                        help="also drive each scenario's yardstick on the runs' evaluation and show "
+                             "it in the tables and figures (it drives every evaluation episode): the "
+                             "hand controller of docs/carenv-single-agent.md §8.3 on the racing tracks "
+                             "(default 8 m/s), the scripted driver of envs/intersection_driver.py on the "
+                             "Intersection (default cruise speed 10 m/s); a speed given here is used for "
+                             "every scenario")  # fmt: skip
     parser.add_argument("--early", type=fraction, default=0.25, metavar="FRACTION",
                         help="also compare each explainable agent with its baseline at the evaluation "
                              "nearest this fraction of the run (default 0.25: Fig. 7's 'early stages of "

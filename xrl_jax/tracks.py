@@ -1,6 +1,7 @@
 """Environments for a run: the training track bank and the fixed evaluation tracks, cached on disk
-(the generator is slow to compile, so even a few tracks are worth keeping), and the trainer's vector env, which restarts
-episodes as the config asks. Below the evaluation and the trainer, which both drive on these banks."""
+(the generator is slow to compile, so even a few tracks are worth keeping), and the trainer's
+vector env, which restarts episodes as the config asks. Below the evaluation and the trainer,
+which both drive on these banks."""
 
 from __future__ import annotations
 
