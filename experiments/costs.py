@@ -4,154 +4,25 @@
     python experiments/costs.py --json               # the same numbers as JSON
     python experiments/costs.py --measure-occupancy  # re-measure docs/set_occupancy.json (~1 min)
 
-FLOPs are XLA's own count (``cost_analysis`` of the compiled acting function): on every one of the 100
-cone slots (the paper's count), and as it runs — the per-object layers on the present cones only
-(xrl_jax.sets), packed into the rows one observation reserves, weighted with the measured chance
-(docs/set_occupancy.json) that an observation holds more cones and is computed on every slot; an
-analytic dense-layer count beside them. The mixture actor acts through the fast path
-(docs/algorithms.md §3.7): layers up to the weight-branch depth φ_d run for every object, the rest of
-the trunk and the heads for the one sampled object only — which is why φ_d = 1 costs a small fraction
-of φ_d = 3. The parameter counts, the analytic count and the helpers that build the Country Road
-networks live here too (the tests use them).
+What the columns count: xrl_jax/benchmarks/table_one.py; the occupancy: xrl_jax/occupancy.py.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
-from typing import Any
+from pathlib import Path
 
-import jax
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cli_args import OneLineParser
 
-from xrl_jax import distributions, networks
-from xrl_jax.config import preset
-
-# Table I of the paper: inference FLOPs per action and parameters (Country Road).
-PAPER = {
-    "baseline (SAC, Deep Set)": {"flops": 7_096_281, "params": 200_710},
-    "XSAC φ_d=1": {"flops": 988_262, "params": 136_455},
-    "XSAC φ_d=2": {"flops": 14_015_078, "params": 136_455},
-    "XSAC φ_d=3": {"flops": 27_041_896, "params": 136_455},
-}
-
-
-def count_params(params: Any) -> int:
-    """Number of scalar parameters in a pytree (works on arrays and on ``jax.eval_shape`` results)."""
-    return int(sum(math.prod(leaf.shape) for leaf in jax.tree_util.tree_leaves(params)))
-
-
-def dense_flops(fan_in: int, fan_out: int) -> int:
-    """FLOPs of one dense layer on one input row: a multiply and an add per weight plus the bias add."""
-    return 2 * fan_in * fan_out + fan_out
-
-
-def mixture_actor_sample_flops(
-    num_objects: int, input_dim: int, width: int, depth: int, weight_depth: int, head_outputs: int, fast: bool
-) -> int:
-    """Analytic dense-layer FLOPs of drawing one action from a myopic mixture actor (ReLU etc. ignored).
-
-    Full path: every layer and head for all O objects. Fast path (§3.7): layers 1..φ_d and φ for
-    all O objects, layers φ_d+1..depth and the heads (``head_outputs`` units) for one object only.
-    """
-    fans = [input_dim] + [width] * depth
-    layer = [dense_flops(fans[i], fans[i + 1]) for i in range(depth)]
-    shared = sum(layer[:weight_depth]) + dense_flops(width, 1)
-    rest = sum(layer[weight_depth:]) + dense_flops(width, head_outputs)
-    return num_objects * shared + (1 if fast else num_objects) * rest
-
-
-def country_road_networks(algo: str, packing_fallback: bool = True, **overrides: Any) -> networks.Networks:
-    """The paper's Country Road networks of ``algo`` (3 continuous actions), with config overrides
-    (``packing_fallback=False``: the packed computation alone, for counting its FLOPs)."""
-    config = preset("paper", "country_road", algo).replace(**overrides)
-    return networks.make_networks(config, networks.ENV_OBSERVATIONS["country_road"], 3, packing_fallback)
-
-
-def sac_actor_outputs(actor, params, obs) -> tuple:
-    """The SAC actor's deterministic forward pass with log σ clipped as the policy clips it."""
-    out = actor.apply(params, obs)
-    return out.mean, distributions.clip_log_std(out.log_std, distributions.SAC_LOG_STD_MIN)
-
-
-def xla_flops(fn, *args) -> float:
-    analysis = jax.jit(fn).lower(*args).compile().cost_analysis()
-    if isinstance(analysis, list):  # older JAX returns one dict per device
-        analysis = analysis[0]
-    return float(analysis["flops"])
-
-
-def acting_flops(nets: networks.Networks, params, obs, key) -> float:
-    """XLA's FLOPs of one action: the SAC actor's deterministic forward pass, the mixture's fast path."""
-    if nets.config.algo == "sac":
-        return xla_flops(lambda p, o: sac_actor_outputs(nets.actor, p, o), params, obs)
-    return xla_flops(lambda p, o, k: nets.actor.apply(p, o, k, method="sample_fast"), params, obs, key)
-
-
-def measure() -> list[dict]:
-    from xrl_jax.occupancy import load_occupancy, overflow_probability
-    from xrl_jax.sets import Packing
-
-    shape = networks.ENV_OBSERVATIONS["country_road"]
-    obs = networks.dummy_observation(shape)
-    obs["cones_set"] = obs["cones_set"].at[:, 0].set(1.0)  # every cone slot present: the worst case
-    key = jax.random.key(0)
-    histogram = load_occupancy()["country_road"]["histogram"]
-    rows = []
-    for name, algo, depth in [
-        ("baseline (SAC, Deep Set)", "sac", None),
-        *[(f"XSAC φ_d={d}", "xsac", d) for d in (1, 2, 3)],
-    ]:
-        overrides = {} if depth is None else {"weight_depth": depth}
-        nets = country_road_networks(algo, dense_sets=True, **overrides)
-        params = jax.jit(nets.init_actor)(key)
-        packed_only = country_road_networks(algo, packing_fallback=False, **overrides)
-        dense, packed = (acting_flops(n, params, obs, key) for n in (nets, packed_only))
-        capacity = Packing(nets.config.packed_rows).capacity(1, shape.num_objects)
-        fallback = overflow_probability(histogram, 1, capacity)
-        row = {
-            "model": name,
-            "params": count_params(params),
-            "flops_xla": dense,
-            "flops_packed": packed,
-            "packed_capacity": capacity,
-            "fallback_probability": fallback,
-            "flops_as_run": (1 - fallback) * packed + fallback * dense,
-            "flops_analytic": None,
-        }
-        if depth is not None:
-            config = nets.config
-            row["flops_analytic"] = mixture_actor_sample_flops(
-                shape.num_objects,
-                shape.object_features + shape.state_dim,
-                config.actor_width,
-                config.actor_depth,
-                depth,
-                6,
-                fast=True,
-            )
-        row["paper_flops"] = PAPER[name]["flops"]
-        row["paper_params"] = PAPER[name]["params"]
-        rows.append(row)
-    return rows
-
-
-def measure_occupancy() -> dict:
-    """Drive every scenario as xrl_jax.occupancy describes and write docs/set_occupancy.json."""
-    from xrl_jax import occupancy
-
-    table = {
-        scenario: occupancy.summarise(scenario, occupancy.rollout_observations(scenario))
-        for scenario in occupancy.SCENARIOS
-    }
-    lines = [f"  {json.dumps(k)}: {json.dumps(v, ensure_ascii=False)}" for k, v in table.items()]
-    occupancy.OCCUPANCY_FILE.write_text("{\n" + ",\n".join(lines) + "\n}\n")
-    return table
+from xrl_jax.benchmarks import format_table_one, measure_table_one
+from xrl_jax.occupancy import measure_occupancy
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="costs.py", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="costs.py", description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument(
         "--measure-occupancy",
@@ -164,42 +35,19 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.measure_occupancy:
-        table = measure_occupancy()
-        for scenario, entry in table.items():
+        for scenario, entry in measure_occupancy().items():
             print(
                 f"{scenario:<14} {entry['observations']:>7} observations, {entry['slots']} slots: mean "
                 f"{entry['mean']}, p50 {entry['p50']}, p90 {entry['p90']}, p99 {entry['p99']}, "
                 f"max {entry['max']}"
             )
         return 0
-    rows = measure()
+    rows = measure_table_one()
     if args.json:
         json.dump(rows, sys.stdout, indent=2)
         print()
         return 0
-
-    def fmt(value) -> str:
-        return "–" if value is None else f"{value:,.0f}"
-
-    header = (
-        f"{'model':<26}{'params':>10}{'paper':>10}{'FLOPs (XLA)':>14}{'analytic':>14}{'paper':>14}"
-        f"{'as run':>14}"
-    )
-    print(header)
-    print("-" * len(header))
-    for r in rows:
-        print(
-            f"{r['model']:<26}{fmt(r['params']):>10}{fmt(r['paper_params']):>10}"
-            f"{fmt(r['flops_xla']):>14}{fmt(r['flops_analytic']):>14}{fmt(r['paper_flops']):>14}"
-            f"{fmt(r['flops_as_run']):>14}"
-        )
-    print(
-        "\nFLOPs (XLA): every one of the 100 cone slots; it includes activations and the sampling ops "
-        "(+2.6 kFLOP for XSAC, -3.8 kFLOP for the baseline's deterministic forward); the analytic column "
-        "counts dense layers only. As run: the present cones packed into "
-        f"the {rows[0]['packed_capacity']} rows one observation reserves, or every slot with the measured "
-        f"probability {rows[0]['fallback_probability']:.3f} that an observation holds more cones."
-    )
+    print("\n".join(format_table_one(rows)))
     return 0
 
 

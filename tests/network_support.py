@@ -1,8 +1,5 @@
-"""Helpers for the network tests: networks at test sizes, the cost functions of experiments/costs.py,
-and the policy that the distributions build from an actor's raw output."""
-
-import importlib.util
-from pathlib import Path
+"""Helpers for the network tests: networks at test sizes, and the policy that the distributions build
+from an actor's raw output."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -11,19 +8,6 @@ import envs
 from xrl_jax import networks
 from xrl_jax.config import DISCRETE_ALGOS, preset
 from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _load_costs():
-    spec = importlib.util.spec_from_file_location("costs_for_tests", ROOT / "experiments" / "costs.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-costs = _load_costs()
-count_params = costs.count_params
 
 
 def action_size(algo: str) -> int:

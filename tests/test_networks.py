@@ -7,8 +7,6 @@ import numpy as np
 import pytest
 from network_support import (
     component_weights,
-    costs,
-    count_params,
     make_test_networks,
     mixture_policy,
     object_weights,
@@ -16,6 +14,8 @@ from network_support import (
 )
 
 from xrl_jax import networks as N
+from xrl_jax.benchmarks import table_one as costs
+from xrl_jax.benchmarks.table_one import count_params
 from xrl_jax.config import ALGOS
 from xrl_jax.distributions import LOG_STD_MAX, MIXTURE_LOG_STD_MIN, SAC_LOG_STD_MIN
 

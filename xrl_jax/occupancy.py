@@ -13,8 +13,9 @@ docs/performance.md describes and records what the observations held:
 
 :func:`rollout_observations` returns the observations themselves (the update benchmarks sample
 their batches from them); :func:`summarise` turns them into the table that ``docs/set_occupancy.json``
-holds (``python experiments/costs.py --measure-occupancy`` rewrites it) and that the cost estimates
-read (:func:`load_occupancy`, :func:`overflow_probability`, :func:`update_cost`).
+holds (:func:`measure_occupancy`, i.e. ``python experiments/costs.py --measure-occupancy``, rewrites
+it) and that the cost estimates read (:func:`load_occupancy`, :func:`overflow_probability`,
+:func:`update_cost`).
 """
 
 from __future__ import annotations
@@ -151,6 +152,15 @@ def summarise(scenario: str, rollout: dict[str, Any]) -> dict[str, Any]:
     return summary
 
 
+def measure_occupancy(path: str | Path = OCCUPANCY_FILE) -> dict[str, dict[str, Any]]:
+    """Drive every scenario as this module describes and write the table to ``path`` (one line per
+    scenario, so that a re-measurement reads as a small diff)."""
+    table = {scenario: summarise(scenario, rollout_observations(scenario)) for scenario in SCENARIOS}
+    lines = [f"  {json.dumps(k)}: {json.dumps(v, ensure_ascii=False)}" for k, v in table.items()]
+    Path(path).write_text("{\n" + ",\n".join(lines) + "\n}\n")
+    return table
+
+
 def load_occupancy(path: str | Path = OCCUPANCY_FILE) -> dict[str, dict[str, Any]]:
     """The measured table (``docs/set_occupancy.json``), checked for the fields the estimates use."""
     path = Path(path)
@@ -269,6 +279,7 @@ __all__ = [
     "SCENARIOS",
     "fallback_probability",
     "load_occupancy",
+    "measure_occupancy",
     "overflow_probability",
     "present_counts",
     "rollout_observations",

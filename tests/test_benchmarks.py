@@ -1,0 +1,84 @@
+"""The benchmark tools (xrl_jax.benchmarks, experiments/bench.py and costs.py): their command lines
+refuse bad input in one line, the replay batches they time are well formed, Table I's layout.
+Their timings are never asserted (a shared CI machine's timings mean nothing)."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from network_support import action_size
+from train_support import call, load_script, one_line_error
+
+from xrl_jax.agents import make_agent
+from xrl_jax.benchmarks import format_table_one
+from xrl_jax.benchmarks.updates import real_batch
+from xrl_jax.config import preset
+from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return load_script("bench", "bench_cli")
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["env", "--batches", "0"], "--batches: expected a positive integer, got 0"),
+        (["update", "--widths", "x"], "--widths: expected a positive integer, got 'x'"),
+        (["intersection", "--vehicles", "9"], "--vehicles must lie in 1..8"),
+        (["train", "--seeds", "3", "--devices", "2"], "every --seeds value must be a multiple"),
+        (["update", "--env", "moon"], "invalid choice: 'moon'"),
+    ],
+)
+def test_bench_refuses_bad_input_in_one_line(bench, capsys, args, message):
+    status, _, err = call(bench, capsys, *args)
+    one_line_error(status, err, message)
+
+
+def test_bench_prints_one_json_document(bench, capsys):
+    status, out, _ = call(bench, capsys, "matmul", "--size", "64")
+    report = json.loads(out)
+    assert status == 0 and report["command"] == "matmul" and report["machine"]["backend"] == "cpu"
+    assert report["results"]["size"] == 64 and report["results"]["gflops"] > 0
+
+
+@pytest.mark.parametrize("algo", ["dsac", "xsac"])
+def test_real_batches_take_their_actions_from_the_agents_space(algo):
+    config = preset("smoke", "country_road", algo)
+    agent = make_agent(config, dummy_observation(ENV_OBSERVATIONS["country_road"]), action_size(algo))
+    rows = 50
+    observations = {
+        name: np.arange(rows * value.size, dtype=np.float32).reshape(rows, *value.shape)
+        for name, value in dummy_observation(ENV_OBSERVATIONS["country_road"]).items()
+    }
+    batch = real_batch(observations, 8, agent, jax.random.PRNGKey(0))
+    assert batch["obs"].keys() == observations.keys() and batch["obs"]["cones_set"].shape[0] == 8
+    first_values = np.asarray(batch["obs"]["cones_set"]).reshape(8, -1)[:, 0]
+    assert np.all(np.isin(first_values, observations["cones_set"].reshape(rows, -1)[:, 0]))  # real rows
+    action = batch["action"]
+    if config.is_discrete:
+        assert action.shape == (8,) and jnp.issubdtype(action.dtype, jnp.integer)
+        assert int(action.min()) >= 0 and int(action.max()) < action_size(algo)
+    else:
+        assert action.shape == (8, action_size(algo)) and float(jnp.abs(action).max()) <= 1.0
+
+
+def test_table_one_shows_missing_numbers_as_a_dash():
+    row = {
+        "model": "XSAC φ_d=1",
+        "params": 136_455,
+        "paper_params": 136_455,
+        "flops_xla": 1_000_000.4,
+        "flops_analytic": None,
+        "paper_flops": 988_262,
+        "flops_as_run": 600_000,
+        "packed_capacity": 12,
+        "fallback_probability": 0.0125,
+    }
+    header, rule, line, note = format_table_one([row])
+    assert rule == "-" * len(header) and len(line) == len(header)
+    assert line.split()[-6:] == ["136,455", "136,455", "1,000,000", "–", "988,262", "600,000"]
+    assert "12 rows one observation reserves" in note and "probability 0.013" in note
