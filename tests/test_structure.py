@@ -53,7 +53,6 @@ def part_of(module: str) -> str | None:
 def imports(path: Path, module_level_only: bool) -> set[str]:
     """The project modules ``path`` imports: ``from xrl_jax.train import hosts`` imports the module
     ``xrl_jax.train.hosts``, ``from xrl_jax.config import preset`` the module ``xrl_jax.config``."""
-    modules = {module_name(source) for source in source_files()}
     tree = ast.parse(path.read_text(encoding="utf-8"))
     found = set()
     for node in tree.body if module_level_only else ast.walk(tree):
@@ -62,8 +61,11 @@ def imports(path: Path, module_level_only: bool) -> set[str]:
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             for alias in node.names:
                 submodule = f"{node.module}.{alias.name}"
-                found.add(submodule if submodule in modules else node.module)
-    return {name for name in found if name in modules}
+                found.add(submodule if submodule in MODULES else node.module)
+    return {name for name in found if name in MODULES}
+
+
+MODULES = {module_name(path) for path in source_files()}
 
 
 def test_every_part_of_the_library_has_a_layer():

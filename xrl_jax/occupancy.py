@@ -258,6 +258,12 @@ def fallback_probability(agent, batch_size: int, members: int = 1, table: dict |
     return probability
 
 
+def packed_only(agent):
+    """``agent`` with its packed computation compiled alone (no dense fallback), to count the FLOPs
+    that run: XLA's cost analysis counts a conditional as its larger branch."""
+    return make_agent(agent.config, agent.dummy_observation(), agent.action_size, packing_fallback=False)
+
+
 def update_cost(agent, batch_size: int, members: int = 1, table: dict | None = None) -> dict[str, float]:
     """FLOPs of one update as it runs: ``dense`` (every slot), ``packed`` (the packed computation
     alone), the ``fallback_probability`` and the ``expected`` mix of the two (``packed`` and the
@@ -266,8 +272,7 @@ def update_cost(agent, batch_size: int, members: int = 1, table: dict | None = N
     dense = update_flops(make_agent(config.replace(dense_sets=True), example, agent.action_size), batch_size)
     if config.packed_rows is None or config.dense_sets:
         return {"dense": dense, "packed": None, "fallback_probability": 0.0, "expected": dense}
-    packed_only = make_agent(config, example, agent.action_size, packing_fallback=False)
-    packed = update_flops(packed_only, batch_size)
+    packed = update_flops(packed_only(agent), batch_size)
     probability = fallback_probability(agent, batch_size, members, table)
     expected = (1.0 - probability) * packed + probability * dense
     return {"dense": dense, "packed": packed, "fallback_probability": probability, "expected": expected}
@@ -281,6 +286,7 @@ __all__ = [
     "load_occupancy",
     "measure_occupancy",
     "overflow_probability",
+    "packed_only",
     "present_counts",
     "rollout_observations",
     "scenario_of",

@@ -17,6 +17,7 @@ from typing import Any
 
 import jax
 
+import envs
 from xrl_jax import distributions, networks
 from xrl_jax.benchmarks.timing import compiled_flops
 from xrl_jax.config import preset
@@ -58,10 +59,13 @@ def mixture_actor_sample_flops(
 
 
 def country_road_networks(algo: str, packing_fallback: bool = True, **overrides: Any) -> networks.Networks:
-    """The paper's Country Road networks of ``algo`` (3 continuous actions), with config overrides
+    """The paper's Country Road networks of ``algo`` (its continuous actions), with config overrides
     (``packing_fallback=False``: the packed computation alone, for counting its FLOPs)."""
     config = preset("paper", "country_road", algo).replace(**overrides)
-    return networks.make_networks(config, networks.ENV_OBSERVATIONS["country_road"], 3, packing_fallback)
+    actions = envs.action_size(envs.action_space("country_road"))
+    return networks.make_networks(
+        config, networks.ENV_OBSERVATIONS["country_road"], actions, packing_fallback
+    )
 
 
 def sac_actor_outputs(actor, params, obs) -> tuple:

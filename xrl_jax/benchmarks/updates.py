@@ -22,6 +22,7 @@ from xrl_jax.benchmarks.timing import (
 )
 from xrl_jax.config import preset, preset_train_fields
 from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
+from xrl_jax.occupancy import packed_only
 from xrl_jax.sets import MEMBERS_AXIS
 
 
@@ -96,7 +97,7 @@ def bench_update(
 
         compiled, compile_s = seconds_of(lambda run=run: jax.jit(run).lower(states, key).compile())
         one = jax.tree.map(lambda x: x[0], batches)
-        flops = update_flops(agent if name != "packed" else _packed_only(agent), states, one, seeds)
+        flops = update_flops(agent if name != "packed" else packed_only(agent), states, one, seeds)
         jax.block_until_ready(compiled(states, key))
         calls[name] = lambda compiled=compiled: compiled(states, key)
         out[name] = {"gflop_per_update": flops / 1e9, "compile_s": compile_s}
@@ -120,12 +121,6 @@ def _stacked_batches(observations: dict, batch_size: int, agent: Agent, count: i
     keys = jax.random.split(jax.random.PRNGKey(1), count)
     batches = [real_batch(observations, batch_size, agent, k) for k in keys]
     return jax.tree.map(lambda *xs: jnp.stack(xs), *batches)
-
-
-def _packed_only(agent):
-    """The same agent with its packed computation compiled alone (no dense fallback), to count the
-    FLOPs that run: XLA's cost analysis counts the larger branch of a conditional."""
-    return make_agent(agent.config, agent.dummy_observation(), agent.action_size, packing_fallback=False)
 
 
 def update_flops(agent, states, batch: dict, seeds: int) -> float:
