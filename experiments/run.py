@@ -153,6 +153,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="seconds to wait for the coordinator and the other processes (default 120)",
     )
+    parser.add_argument(
+        "--log",
+        action="append",
+        choices=("tensorboard", "wandb"),
+        default=[],
+        help="also send the records to TensorBoard (<out>/tensorboard) or W&B (project $WANDB_PROJECT, "
+        "default xrl-jax; WANDB_MODE=offline works without a network); repeatable; needs the extra of "
+        "the same name",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no log lines")
     return parser
 
@@ -185,6 +194,7 @@ def _request(args):
         num_processes=args.num_processes,
         process_id=args.process_id,
         coordinator_timeout=args.coordinator_timeout,
+        trackers=tuple(dict.fromkeys(args.log)),
     )
 
 

@@ -44,6 +44,8 @@ def run_paths(out: Path) -> dict[str, Path]:
         "curve": out / "learning_curve.png",
         "sweep": out / "sweep.png",
         "timing": out / "timing.jsonl",
+        "trackers": out / "trackers.json",  # what the trackers of runs.trackers have received
+        "tensorboard": out / "tensorboard",
     }
 
 

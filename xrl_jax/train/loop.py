@@ -39,6 +39,7 @@ from xrl_jax.runs.folder import (
 from xrl_jax.runs.plots import plot_learning_curve, plot_sweep
 from xrl_jax.runs.provenance import config_document
 from xrl_jax.runs.summary import summarize_run
+from xrl_jax.runs.trackers import TrackerMirror
 from xrl_jax.train import hosts
 from xrl_jax.train.chunk import RunState, Trainer, get_trainer, member_hparams
 from xrl_jax.train.clock import RunClock, cost_lines
@@ -78,6 +79,7 @@ def train(
     stop: StopController | None = None,
     warn=None,
     command: list[str] | None = None,
+    trackers: tuple[str, ...] = (),
 ) -> dict[str, Any] | None:
     """Run (or continue) the whole experiment into ``out``; returns the summary.
 
@@ -99,6 +101,8 @@ def train(
     interruption would; ``resume=True`` continues from the newest good checkpoint of each group.
     ``log`` takes progress lines; ``warn`` (default: standard error, also when ``log`` is silent)
     takes what the user must see: damaged checkpoints, too little disk, a run longer than a day.
+    ``trackers`` (``"tensorboard"``, ``"wandb"``) mirror the records as they are written
+    (:mod:`xrl_jax.runs.trackers`).
     """
     out = Path(out)
     if warn is None:
@@ -113,7 +117,8 @@ def train(
                     text = json.dumps(document, indent=2, sort_keys=True) + "\n"
                     write_atomic(run_paths(out)["config"], text)
             hosts.sync("xrl-jax: run folder ready")
-            return _HostLoop(cfg, out, trainer, log, warn, progress, stop).run(resume, stop_after_chunks)
+            loop = _HostLoop(cfg, out, trainer, log, warn, progress, stop)
+            return loop.run(resume, stop_after_chunks, trackers)
     except Exception as err:  # orbax reports a full disk as ValueError("RESOURCE_EXHAUSTED ...")
         if not is_disk_full(err):
             raise
@@ -149,23 +154,31 @@ class _HostLoop:
         self.unverified: list[tuple[int, int]] = []  # (group, step) restored without digests
 
     # ---- the run ------------------------------------------------------------------------------
-    def run(self, resume: bool, stop_after_chunks: int | None) -> dict[str, Any] | None:
+    def run(
+        self, resume: bool, stop_after_chunks: int | None, trackers: tuple[str, ...]
+    ) -> dict[str, Any] | None:
         self.chunks_left = stop_after_chunks
         self.plan = self._plan(resume)
         self.groups = self.plan["groups"]
         self.clock = RunClock(self.cfg, len(self.groups))
         self.done_steps = 0
+        # The primary process mirrors every member's records (the folder is shared by all processes).
+        self.mirror = TrackerMirror(self.out, self.cfg, trackers, self.warn) if hosts.is_primary() else None
         try:
-            for group_index, members in enumerate(self.groups):
-                self._run_group(group_index, members, resume)
-        except _StopAfterChunks:
-            return None
+            try:
+                for group_index, members in enumerate(self.groups):
+                    self._run_group(group_index, members, resume)
+            except _StopAfterChunks:
+                return None
+            finally:
+                if self.bar is not None:
+                    self.bar.close()
+            if self.stop is not None:
+                self.stop.idle()
+            return self._summarise()
         finally:
-            if self.bar is not None:
-                self.bar.close()
-        if self.stop is not None:
-            self.stop.idle()
-        return self._summarise()
+            if self.mirror is not None:
+                self.mirror.close()
 
     def _plan(self, resume: bool) -> dict[str, Any]:
         cfg, paths, log = self.cfg, self.paths, self.log
@@ -348,6 +361,8 @@ class _HostLoop:
             self.bar.update(collected)
         if hosts.is_primary():
             append_lines(paths["timing"], [{"group": group_index, "step": step, "seconds": elapsed}])
+        if self.mirror is not None:
+            self.mirror.sync()
         if self._agreed(stop is not None and stop.requested is not None):  # asked during or after this chunk
             if self.saved_step != step:
                 self._save(ckpt, state, members, chunk_index, step, group_index)
@@ -416,6 +431,8 @@ class _HostLoop:
             "groups": len(self.groups),
             "processes": jax.process_count(),
         }
+        if self.mirror is not None:  # the other processes' last records are written now
+            self.mirror.sync()
         if hosts.is_primary():
             write_atomic(self.paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
             if summary["curve"] or summary.get("sweep"):

@@ -26,6 +26,7 @@ from xrl_jax.runs.folder import (
     run_paths,
 )
 from xrl_jax.runs.plots import plot_sweep
+from xrl_jax.runs.trackers import check_trackers
 from xrl_jax.tracks import cache_dir
 from xrl_jax.train import hosts
 from xrl_jax.train.chunk import mesh_devices
@@ -61,6 +62,7 @@ class RunRequest:
     num_processes: int | None = None
     process_id: int | None = None
     coordinator_timeout: float = 120.0  # seconds to wait for the coordinator and the other processes
+    trackers: tuple[str, ...] = ()  # --log: mirrors of the records (xrl_jax.runs.trackers)
 
     def configures(self) -> bool:
         """Whether any option that shapes the configuration was given (a resume must match them)."""
@@ -77,6 +79,7 @@ class PreparedRun:
     out: Path
     resume: bool
     baseline: dict | None
+    trackers: tuple[str, ...] = ()
 
 
 class LostProcessError(RuntimeError):
@@ -225,13 +228,14 @@ def prepare_run(request: RunRequest, results_root: Path) -> PreparedRun:
         cfg = stored.replace(num_devices=request.devices) if request.devices else stored
     else:
         cfg = requested_config(request)
+    check_trackers(request.trackers)
     baseline, problem = _baseline(request, cfg)
     problem = _devices_problem(cfg) or problem
     if problem:  # before anything is written
         raise ConfigError(problem)
     if request.resume is None:
         out = _new_folder(request, cfg, results_root)
-    return PreparedRun(cfg, out, request.resume is not None, baseline)
+    return PreparedRun(cfg, out, request.resume is not None, baseline, tuple(request.trackers))
 
 
 def train_prepared(run: PreparedRun, **train_options: Any) -> dict[str, Any] | None:
@@ -239,7 +243,7 @@ def train_prepared(run: PreparedRun, **train_options: Any) -> dict[str, Any] | N
     --baseline run into a sweep's figure; returns the summary (None when stopped early)."""
     try:
         summary = train_package.train(  # looked up at the call, so tests may wrap train()
-            run.cfg, run.out, resume=run.resume, **train_options
+            run.cfg, run.out, resume=run.resume, trackers=run.trackers, **train_options
         )
     except Exception as err:  # a collective that failed because another process of the job died
         if not hosts.lost_a_process(err):

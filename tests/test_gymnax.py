@@ -1,0 +1,119 @@
+"""The scenarios as gymnax 1.0 environments (envs.gymnax): gymnax's own spaces and auto-reset, the
+Intersection's episode-level flags, and a third-party trainer (rejax's PPO) learning on Tracking."""
+
+import numpy as np
+import pytest
+
+gymnax = pytest.importorskip(
+    "gymnax", reason="the gymnax extra is not installed (pip install -e '.[gymnax]')"
+)
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+from gymnax.environments import spaces  # noqa: E402
+
+from envs import gymnax as carenv_gymnax  # noqa: E402
+from envs.intersection import MAX_AGENTS  # noqa: E402
+
+SMALL_BANK = dict(track_bank_size=4)  # reset draws from the bank; four tracks keep the build short
+
+
+def random_action(env, params, key):
+    space = env.action_space(params)
+    if env.multi_agent:
+        return jax.vmap(space.sample)(jax.random.split(key, MAX_AGENTS))
+    return space.sample(key)
+
+
+@pytest.mark.parametrize(
+    "name, overrides",
+    [("tracking", SMALL_BANK), ("country_road_discrete", SMALL_BANK), ("intersection", {})],
+)
+def test_observations_and_actions_lie_in_gymnax_spaces(name, overrides):
+    env, params = carenv_gymnax.make(name, **overrides)
+    flat_env, _ = carenv_gymnax.make(name, flat_obs=True, **overrides)
+    assert isinstance(env, gymnax.environments.environment.Environment)
+    obs, state = env.reset(jax.random.PRNGKey(3), params)
+    action = random_action(env, params, jax.random.PRNGKey(4))
+    stepped = env.step(jax.random.PRNGKey(5), state, action, params)
+
+    def rows(tree):  # per vehicle on the Intersection, whose spaces are per vehicle
+        if not env.multi_agent:
+            return [tree]
+        return [jax.tree.map(lambda x, i=i: x[i], tree) for i in range(MAX_AGENTS)]
+
+    as_gym = spaces.gymnax_space_to_gym_space(env.observation_space(params))
+    flat_space = flat_env.observation_space(params)
+    for observation in (obs, stepped[0]):
+        for row in rows(observation):
+            assert as_gym.contains({k: np.asarray(v) for k, v in row.items()})
+            flat = carenv_gymnax.flatten_observation(row)
+            assert flat.shape == flat_space.shape and bool(flat_space.contains(flat))
+    for row in rows(action):
+        assert bool(env.action_space(params).contains(row))
+    # The episode-level flags are scalars everywhere (gymnax's auto-reset selects on them).
+    assert stepped[3].shape == () and stepped[4].shape == ()
+    assert stepped[2].shape == ((MAX_AGENTS,) if env.multi_agent else ())
+    # The flat env observes the flattened dict. Both run op by op (not jitted), so the same operations
+    # on the same inputs give the same bits.
+    with jax.disable_jit():
+        dict_step = env.step_env(jax.random.PRNGKey(5), state, action, params)
+        flat_step = flat_env.step_env(jax.random.PRNGKey(5), state, action, params)
+    np.testing.assert_array_equal(flat_step[0], carenv_gymnax.flatten_observation(dict_step[0]))
+
+
+def test_auto_reset_follows_gymnax_and_keeps_the_ending_observation():
+    """The racing time limit, shortened to three steps, ends the episode as a truncation: gymnax's step
+    returns the reset of the step key's second half and keeps the ending observation in info."""
+    env, params = carenv_gymnax.make("tracking", max_steps=3, **SMALL_BANK)
+    assert params.max_steps_in_episode == 3
+    obs, state = env.reset(jax.random.PRNGKey(0), params)
+    throttle = jnp.array([0.0, 1.0, 0.0])
+    with jax.disable_jit():  # op by op, so that the scenario's own step gives the same bits
+        for step in range(1, 4):
+            key = jax.random.PRNGKey(10 + step)
+            inner_obs, inner_state, *_ = env.scenario.step_env(key, state.inner, throttle, params.inner)
+            obs, state, _, terminated, truncated, info = env.step(key, state, throttle, params)
+            assert not bool(terminated) and bool(truncated) == (step == 3)
+        reset_obs, _ = env.reset_env(jax.random.split(key)[1], params)
+    for name in obs:
+        np.testing.assert_array_equal(obs[name], reset_obs[name])
+        np.testing.assert_array_equal(info["final_observation"][name], inner_obs[name])
+    assert int(state.time) == 0 and int(state.inner.step_count) == 0
+    assert int(inner_state.step_count) == 3
+
+
+def test_intersection_episode_ends_at_its_time_limit_with_per_vehicle_flags():
+    env, params = carenv_gymnax.make("intersection", episode_steps=2)
+    _, state = env.reset(jax.random.PRNGKey(0), params)
+    standing = jnp.zeros((MAX_AGENTS, 3))
+    with jax.disable_jit():  # op by op, so that the scenario's own step gives the same bits
+        for step in (1, 2):
+            key = jax.random.PRNGKey(step)
+            inner = env.scenario.step_env(key, state.inner, standing, params.inner)
+            _, state, reward, terminated, truncated, info = env.step(key, state, standing, params)
+            assert not bool(terminated) and bool(truncated) == (step == 2)
+            np.testing.assert_array_equal(reward, inner[2])
+            np.testing.assert_array_equal(info["agent_terminated"], inner[3])
+            np.testing.assert_array_equal(info["agent_truncated"], inner[4])
+    # The cars that acted in the last step are cut off by the limit; the ending observation is theirs.
+    assert bool(jnp.all(info["agent_truncated"] == info["acted"]))
+    np.testing.assert_array_equal(info["final_observation"]["state"], inner[5]["final_obs"]["state"])
+    assert int(state.time) == 0 and int(state.inner.step) == 0
+
+
+def test_a_third_party_trainer_learns_on_tracking():
+    """rejax's PPO (written for gymnax's five-value step, hence legacy_step_api) trains on Tracking
+    through envs.gymnax. rejax evaluates 128 episodes before training and at every eval_freq; the
+    margin is four standard errors of the difference of the two means, from those episodes' spread, so
+    an untrained policy passes with probability ~3e-5."""
+    rejax = pytest.importorskip("rejax", reason="rejax is not installed (pip install -e '.[gymnax]')")
+    env, params = carenv_gymnax.make("tracking", flat_obs=True, track_bank_size=64)
+    algo = rejax.PPO.create(
+        env=carenv_gymnax.legacy_step_api(env), env_params=params, total_timesteps=65_536, num_envs=16,
+        num_steps=128, eval_freq=16_384, num_epochs=4, num_minibatches=4, learning_rate=3e-4, gamma=0.98,
+    )  # fmt: skip
+    _, (_, returns) = jax.jit(algo.train)(jax.random.PRNGKey(0))
+    untrained, trained = np.asarray(returns[0]), np.asarray(returns[-1])
+    margin = 4.0 * np.sqrt(untrained.var(ddof=1) / untrained.size + trained.var(ddof=1) / trained.size)
+    assert trained.mean() > untrained.mean() + margin, (untrained.mean(), trained.mean(), margin)
