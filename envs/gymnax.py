@@ -110,7 +110,9 @@ class GymnaxEnv(environment.Environment):
     @property
     def default_params(self) -> GymnaxParams:
         params = self.scenario_params
-        limit = params.episode_steps if self.multi_agent else params.max_steps
+        limit = params.episode_steps if self.multi_agent else getattr(params, "max_steps", None)
+        if limit is None:  # a user's env (envs.register) whose params do not say
+            raise ValueError(f"{self.name}: gymnax needs the time limit of an episode as params.max_steps")
         return GymnaxParams(max_steps_in_episode=int(limit), inner=params)
 
     @property

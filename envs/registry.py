@@ -25,11 +25,17 @@ Overrides (keyword arguments):
 * ``lookahead_points`` (tracking only, default 25).
 
 Unknown names or overrides raise ``ValueError`` listing the valid ones.
+
+A user's env joins with ``register(name, factory)`` (``factory(**overrides) -> (env, params)``); then
+``make(name)``, ``action_space(name)`` and ``envs.gymnax.make(name)`` (if its params hold
+``max_steps``) serve it like a scenario. ``xrl_jax.register_env`` registers it here and, for the
+trainer, its observation layout.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -69,6 +75,40 @@ _BUILD_OPTIONS = ("track_bank_size", "track_seed", "track")
 _TRACKING_OPTIONS = ("lookahead_points",)
 
 
+_USER_FACTORIES: dict[str, Callable[..., tuple[Environment, Any]]] = {}
+
+
+def register(name: str, factory: Callable[..., tuple[Environment, Any]]) -> None:
+    """Make ``make(name, **overrides)`` call ``factory(**overrides)``; registering a name again
+    replaces its factory. The built-in names cannot be taken."""
+    if not isinstance(name, str) or not name.isidentifier():
+        raise ValueError(f"an env name is a Python identifier (letters, digits, _), got {name!r}")
+    if name in ENV_NAMES:
+        raise ValueError(f"{name!r} is a built-in scenario; register your env under another name")
+    if not callable(factory):
+        raise ValueError(f"the factory of {name!r} must be callable, returning (env, params)")
+    _USER_FACTORIES[name] = factory
+
+
+def unregister(name: str) -> None:
+    """Forget a user's env (built-in scenarios stay)."""
+    _USER_FACTORIES.pop(name, None)
+
+
+def user_factory(name: str) -> Callable[..., tuple[Environment, Any]] | None:
+    """The factory registered as ``name``, or None (a built-in or unknown name)."""
+    return _USER_FACTORIES.get(name)
+
+
+def registered() -> tuple[str, ...]:
+    """The users' env names registered in this process."""
+    return tuple(_USER_FACTORIES)
+
+
+def _unknown(name: str) -> ValueError:
+    return ValueError(f"unknown env name {name!r}; valid names: {', '.join(ENV_NAMES + registered())}")
+
+
 def valid_overrides(name: str) -> tuple[str, ...]:
     """The keyword overrides ``make(name, ...)`` accepts."""
     if name in _MULTI_AGENT:
@@ -79,8 +119,10 @@ def valid_overrides(name: str) -> tuple[str, ...]:
 
 def make(name: str, **overrides) -> tuple[Environment, Any]:
     """Build a scenario and its params; see the module docstring for names and overrides."""
+    if name in _USER_FACTORIES:
+        return _USER_FACTORIES[name](**overrides)
     if name not in _SCENARIOS and name not in _MULTI_AGENT:
-        raise ValueError(f"unknown env name {name!r}; valid names: {', '.join(ENV_NAMES)}")
+        raise _unknown(name)
     if name in _MULTI_AGENT:
         return _make_intersection(name, overrides)
     cls, discrete = _SCENARIOS[name]
@@ -96,11 +138,14 @@ def make(name: str, **overrides) -> tuple[Environment, Any]:
 
 def action_space(name: str) -> Space:
     """The (per-agent) action space of scenario ``name``, without building its params: no track is
-    generated."""
+    generated (a user's env is built by its factory)."""
+    if name in _USER_FACTORIES:
+        env, params = _USER_FACTORIES[name]()
+        return env.action_space(params)
     if name in _MULTI_AGENT:
         return IntersectionEnv(discrete=_MULTI_AGENT[name]).action_space()
     if name not in _SCENARIOS:
-        raise ValueError(f"unknown env name {name!r}; valid names: {', '.join(ENV_NAMES)}")
+        raise _unknown(name)
     cls, discrete = _SCENARIOS[name]
     return cls(discrete=discrete).action_space()
 

@@ -65,3 +65,37 @@ def fraction(text: str) -> float:
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {value}")
     return value
+
+
+IMPORT_HELP = (
+    "a Python module (dotted name) or .py file to import first, e.g. one that registers your own env "
+    "with xrl_jax.register_env (docs/ecosystem.md); repeatable"
+)
+
+
+def import_user_modules(argv: list[str] | None) -> str | None:
+    """Import every ``--import`` target of ``argv`` (before the full parser, whose ``--env`` choices
+    then include the envs they register); returns a one-line problem, or None."""
+    import importlib
+    import importlib.util
+    from pathlib import Path
+
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--import", dest="imports", action="append", default=[])
+    targets = pre.parse_known_args(sys.argv[1:] if argv is None else argv)[0].imports
+    for target in targets:
+        try:
+            if target.endswith(".py"):
+                path = Path(target)
+                spec = importlib.util.spec_from_file_location(path.stem, path)
+                if spec is None or not path.is_file():
+                    return f"--import {target}: no such file"
+                module = importlib.util.module_from_spec(spec)
+                sys.modules[path.stem] = module
+                spec.loader.exec_module(module)
+            else:
+                importlib.import_module(target)
+        except Exception as err:  # the user's code: whatever it raises is reported in one line
+            lines = str(err).strip().splitlines()
+            return f"--import {target}: {type(err).__name__}: {lines[0] if lines else ''}"
+    return None

@@ -24,7 +24,15 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, fail, fraction, non_negative_int, positive_int
+from cli_args import (
+    IMPORT_HELP,
+    OneLineParser,
+    fail,
+    fraction,
+    import_user_modules,
+    non_negative_int,
+    positive_int,
+)
 
 FORMATS = (".png", ".gif", ".mp4")
 PROG = "explain.py"
@@ -58,6 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--run", required=True, metavar="RESULTS_DIR", help="results folder of experiments/run.py"
+    )
+    parser.add_argument(
+        "--import", dest="imports", metavar="MODULE", action="append", default=[], help=IMPORT_HELP
     )
     parser.add_argument("--seed", type=non_negative_int, default=0, help="which seed of the run (default 0)")
     parser.add_argument(
@@ -112,6 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    problem = import_user_modules(argv)  # a run on a user's env needs the module that registers it
+    if problem:
+        return fail(PROG, problem)
     args = build_parser().parse_args(argv)
     out = Path(args.out)
     suffix = out.suffix.lower()

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, fail, fraction, positive_speed
+from cli_args import IMPORT_HELP, OneLineParser, fail, fraction, import_user_modules, positive_speed
 
 PROG = "report.py"
 DRIVERS_DEFAULT = 0.0  # --controller without a speed: each driver's own (not a str: argparse would parse it)
@@ -30,6 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="results folders of experiments/run.py")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder of the report (created)")
+    parser.add_argument(
+        "--import", dest="imports", metavar="MODULE", action="append", default=[], help=IMPORT_HELP
+    )
     parser.add_argument("--controller", nargs="?", type=positive_speed, const=DRIVERS_DEFAULT,
                         metavar="M_PER_S",
                         help="also drive each scenario's yardstick on the runs' evaluation and show "
@@ -46,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    problem = import_user_modules(argv)  # runs on a user's env need the module that registers it
+    if problem:
+        return fail(PROG, problem)
     args = build_parser().parse_args(argv)
     from xrl_jax.report import ReportError, write_report
 

@@ -15,9 +15,10 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, fail, non_negative_int, positive_int
+from cli_args import IMPORT_HELP, OneLineParser, fail, import_user_modules, non_negative_int, positive_int
 
-from xrl_jax.config import ALGOS, ENVS, PRESETS, settings_help  # jax-free: --help stays fast
+from xrl_jax.config import ALGOS, PRESETS, settings_help  # jax-free: --help stays fast
+from xrl_jax.config.scenarios import known_envs
 
 PROG = "run.py"
 ROOT = Path(__file__).resolve().parents[1]
@@ -97,7 +98,12 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG.format(settings=settings_help()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--env", choices=ENVS, default=None, help="scenario to train on (default: tracking)")
+    parser.add_argument(
+        "--env", choices=known_envs(), default=None, help="scenario to train on (default: tracking)"
+    )
+    parser.add_argument(
+        "--import", dest="imports", metavar="MODULE", action="append", default=[], help=IMPORT_HELP
+    )
     parser.add_argument("--algo", choices=ALGOS, default=None, help="agent (default: xsac)")
     parser.add_argument(
         "--seeds", type=positive_int, default=None, help="independent seeds trained at once (default: 1)"
@@ -167,6 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    problem = import_user_modules(argv)  # first: the envs they register become --env choices
+    if problem:
+        return fail(PROG, problem)
     args = build_parser().parse_args(argv)
     from xrl_jax.interrupts import StopController
 
@@ -233,7 +242,8 @@ def _train(args, argv, prepared, stop) -> int:
     quiet = args.quiet or not primary
     log = (lambda *a, **k: None) if quiet else (lambda msg: print(msg, file=sys.stderr))
     command = [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)]  # into config.json
-    resume_command = f"python experiments/run.py --resume {out}"
+    imports = "".join(f" --import {target}" for target in args.imports)
+    resume_command = f"python experiments/run.py --resume {out}{imports}"
     stop.resume_hint = resume_command  # from now on the folder can be resumed
     points = f" x {cfg.num_points} sweep points" if cfg.num_points > 1 else ""
     log(

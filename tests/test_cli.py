@@ -222,6 +222,9 @@ def test_resume_checks_the_folder_and_its_config(run, smoke_run, capsys, tmp_pat
     one_line_error(status, err, "exclude each other")
     (tmp_path / "config.json").write_text('{"config": {"env": "mars"}}')
     status, _, err = call(run, capsys, "--resume", str(tmp_path))
+    one_line_error(status, err, "trained on 'mars'", "--import")
+    (tmp_path / "config.json").write_text('{"config": {"env": "tracking", "algo": 3}}')
+    status, _, err = call(run, capsys, "--resume", str(tmp_path))
     one_line_error(status, err, "config.json is unreadable")
 
 

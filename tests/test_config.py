@@ -124,7 +124,7 @@ def test_negative_kappa_is_allowed_for_the_fig8_sweep():
 def test_unknown_preset_env_or_field():
     with pytest.raises(ValueError, match="unknown preset 'huge'; allowed: paper, quick, smoke"):
         preset("huge", "tracking", "sac")
-    with pytest.raises(ValueError, match="unknown env 'moon'; allowed"):
+    with pytest.raises(ValueError, match="unknown scenario 'moon'; known: country_road"):
         preset("paper", "moon", "sac")
     with pytest.raises(ValueError, match="unknown algo 'td3'; allowed"):
         preset("paper", "tracking", "td3")

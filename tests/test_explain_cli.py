@@ -132,7 +132,8 @@ def test_bad_input_fails_with_one_line(cli, xdsac_run, tmp_path, capsys):
     other = tmp_path / "other"
     other.mkdir()
     (other / "config.json").write_text(json.dumps({"config": {"env": "highway"}}))
-    one_line_error(*call(cli, capsys, "--run", other, "--out", png)[::2], "highway runs are not supported")
+    status, _, err = call(cli, capsys, "--run", other, "--out", png)
+    one_line_error(status, err, "unknown scenario 'highway'", "--import")
     one_line_error(
         *call(cli, capsys, "--run", xdsac_run, "--slot", 1, "--out", png)[::2], "for intersection runs only"
     )

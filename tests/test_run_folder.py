@@ -166,5 +166,8 @@ def test_the_folders_documents_are_read_with_one_line_errors(tmp_path):
     with pytest.raises(RunFolderError, match=r"config\.json is not a JSON object"):
         read_run_config(tmp_path)
     (tmp_path / "config.json").write_text('{"config": {"env": "nowhere"}}')
+    with pytest.raises(RunFolderError, match=r"trained on 'nowhere', an env this process has not registered"):
+        read_run_config(tmp_path)
+    (tmp_path / "config.json").write_text('{"config": {"env": "tracking"}}')
     with pytest.raises(RunFolderError, match=r"config\.json is unreadable or from another version"):
         read_run_config(tmp_path)

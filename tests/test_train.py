@@ -7,7 +7,7 @@ import pytest
 from train_support import prepare_cache
 
 from xrl_jax import train as T
-from xrl_jax.config import AgentConfig
+from xrl_jax.config import AgentConfig, scenario
 from xrl_jax.train import ConfigError, MemoryPlanError, TrainConfig, parse_overrides, resolve_config
 from xrl_jax.train.episodes import window_add, window_init, window_means
 from xrl_jax.train.memory import tree_bytes
@@ -66,7 +66,7 @@ def test_overrides_reach_train_and_agent_fields():
 @pytest.mark.parametrize(
     "kwargs, overrides, message",
     [
-        ({"env": "moon"}, [], "unknown env 'moon'; allowed: country_road, tracking"),
+        ({"env": "moon"}, [], "unknown scenario 'moon'; known: country_road, tracking"),
         ({"algo": "ppo"}, [], "allowed: sac, dsac, xsac, xdsac"),
         ({"preset": "fast"}, [], "allowed: paper, quick, smoke"),
         ({"total_steps": -4}, [], "total_steps must be a positive integer"),
@@ -125,7 +125,7 @@ def test_episode_window_keeps_the_last_hundred_finished_episodes():
         value = jnp.array([step, 1000 + step, 2000 + step], jnp.float32)
         window = add(window, done, value, jnp.ones(3, jnp.int32), done & (value > 2000), jnp.zeros(3))
         returns += [float(v) for v, d in zip(value, done, strict=True) if d]
-    means, filled = jax.device_get(window_means(window))
+    means, filled = jax.device_get(window_means(window, scenario("tracking")))
     assert filled
     assert int(window.count) == len(returns)
     assert means["rollout/avg_episode_return"] == pytest.approx(np.mean(returns[-100:]), rel=1e-6)
@@ -134,7 +134,7 @@ def test_episode_window_keeps_the_last_hundred_finished_episodes():
 
 
 def test_empty_window_has_no_data():
-    means, filled = window_means(window_init(jnp.float32))
+    means, filled = window_means(window_init(jnp.float32), scenario("tracking"))
     assert not filled and int(means["rollout/episodes"]) == 0
 
 

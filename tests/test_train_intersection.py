@@ -71,7 +71,9 @@ def test_evaluation_reports_trips_and_early_terminations_with_ci(smoke_run):
 
 
 def test_cli_offers_every_trainable_env():
-    assert load_script("run", "run_cli_envs").ENVS == train_mod.ENVS
+    parser = load_script("run", "run_cli_envs").build_parser()
+    choices = next(action.choices for action in parser._actions if action.dest == "env")
+    assert set(train_mod.ENVS) <= set(choices)  # and the envs registered in this process
 
 
 def test_a_buffer_smaller_than_one_step_of_all_agents_is_refused():

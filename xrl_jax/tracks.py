@@ -77,10 +77,14 @@ def make_envs(cfg: TrainConfig):
     """``(env, train_params, eval_params)``. Racing: the fixed evaluation tracks, and for training a
     fixed bank (``train_tracks`` > 0) or, with fresh tracks, params whose one-track bank is only a
     template for each seed's :class:`envs.track_feed.TrackFeed`. Intersection: curriculum for training,
-    8 vehicles for evaluation (docs/carenv-intersection.md §8.8)."""
+    8 vehicles for evaluation (docs/carenv-intersection.md §8.8). A user's env: its own params for
+    both (its evaluation episodes start from fixed reset keys)."""
     if cfg.multi_agent:
         env, params = envs.make(cfg.env_name)
         return env, params, params.replace(max_vehicles=8)
+    if not cfg.on_tracks:
+        env, params = envs.make(cfg.env_name)
+        return env, params, params
 
     eval_bank = cached_track_bank(cfg.eval_track_seed, cfg.eval_episodes)
     if cfg.fresh_tracks:  # the feed brings the tracks; the bank is a one-track template
@@ -103,7 +107,7 @@ def vector_env(cfg: TrainConfig, env) -> VmapWrapper:
     """The ``num_envs`` envs of one training member, restarting their episodes the config's way: the
     multi-agent env restarts itself; racing envs start each episode on a fresh track of the member's
     feed (refilled half a feed at a time), or with ``train_tracks`` > 0 on one drawn from the fixed
-    bank (auto-reset)."""
+    bank (auto-reset); a user's env restarts from its own reset (auto-reset)."""
     if cfg.multi_agent:
         return VmapWrapper(env, cfg.num_envs)
     if cfg.fresh_tracks:

@@ -9,7 +9,8 @@ from typing import Any
 
 from xrl_jax.config.agent import AgentConfig
 from xrl_jax.config.checks import check_choice
-from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, DISCRETE_ALGOS, ENVS, MIXTURE_ALGOS, PRESETS
+from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, DISCRETE_ALGOS, MIXTURE_ALGOS, PRESETS
+from xrl_jax.config.scenarios import scenario
 
 INTERSECTION_ALPHA = 0.015  # fixed entropy coefficient of all four intersection agents (§8.7 there)
 # Rows reserved per set for the present objects (xrl_jax.sets). Country Road's sets hold 28.9 cones on
@@ -90,6 +91,8 @@ def _paper_agent(env: str, algo: str) -> AgentConfig:
             critic_lr=lr,
             packed_rows=INTERSECTION_PACKED_ROWS,
         )
+    if scenario(env).custom:  # a user's set of objects: Country Road's Deep Set agents, every slot computed
+        return _paper_agent("country_road", algo).replace(target_entropy=None, packed_rows=None)
     racing = env == "country_road"
     lr = 3e-4 if (not racing and algo in CONTINUOUS_ALGOS) else 1e-4
     depth = 2 if racing else 3
@@ -107,10 +110,11 @@ def _paper_agent(env: str, algo: str) -> AgentConfig:
 
 
 def preset(name: str, env: str, algo: str) -> AgentConfig:
-    """The agent of preset ``name`` for (env, algo): paper; quick = width 64 and, on the racing
-    scenarios, the short-budget optimisation constants (on the Intersection, every slot computed);
-    smoke = tiny networks."""
-    for kind, value, choices in (("preset", name, PRESETS), ("env", env, ENVS), ("algo", algo, ALGOS)):
+    """The agent of preset ``name`` for (env, algo): paper (a user's env: Country Road's); quick =
+    width 64 and, on the single-agent scenarios, the short-budget optimisation constants (on the
+    Intersection, every slot computed); smoke = tiny networks."""
+    scenario(env)  # an unknown env fails here, saying how a user's env is registered
+    for kind, value, choices in (("preset", name, PRESETS), ("algo", algo, ALGOS)):
         check_choice("", kind, value, choices)
     agent = _paper_agent(env, algo)
     if name == "quick":
@@ -125,4 +129,9 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
 
 
 def preset_train_fields(name: str, env: str) -> dict[str, Any]:
-    return dict(TRAIN_PRESETS[(name, "intersection" if env == "intersection" else "racing")])
+    """The train-loop settings of preset ``name`` on ``env``; a user's env takes the racing ones
+    (single-agent steps), without their track settings."""
+    fields = dict(TRAIN_PRESETS[(name, "intersection" if scenario(env).multi_agent else "racing")])
+    if scenario(env).custom:
+        fields.pop("train_tracks", None)
+    return fields

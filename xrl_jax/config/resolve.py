@@ -10,10 +10,11 @@ from collections.abc import Mapping
 
 from xrl_jax.config.agent import AgentConfig, field_names
 from xrl_jax.config.checks import ConfigError, check_choice
-from xrl_jax.config.names import ALGOS, ENVS, PRESETS
+from xrl_jax.config.names import ALGOS, PRESETS
 from xrl_jax.config.overrides import apply_overrides, parse_value
 from xrl_jax.config.presets import preset as agent_preset  # resolve_config's ``preset`` is a name
 from xrl_jax.config.presets import preset_train_fields
+from xrl_jax.config.scenarios import scenario
 from xrl_jax.config.train import TrainConfig, train_field_names
 
 
@@ -33,7 +34,8 @@ def resolve_config(
     :func:`parse_sweep`'s result.
     """
     preset_name = preset
-    for kind, value, choices in (("env", env, ENVS), ("algo", algo, ALGOS), ("preset", preset_name, PRESETS)):
+    scenario(env)  # an unknown env fails here, saying how a user's env is registered
+    for kind, value, choices in (("algo", algo, ALGOS), ("preset", preset_name, PRESETS)):
         check_choice("", kind, value, choices)
     fields = preset_train_fields(preset_name, env)
     fields.update(env=env, algo=algo, preset=preset_name, num_seeds=num_seeds, sweep=tuple(sweep))
@@ -57,7 +59,7 @@ def resolve_config(
             allowed = ", ".join(sorted((train_names - {"env", "algo", "preset"}) | agent_names))
             raise ConfigError(f"unknown setting {key!r}; allowed: {allowed}")
     agent = apply_overrides(agent_preset(preset_name, env, algo), agent_changes)
-    if preset_name == "quick" and env != "intersection":  # settings that follow the run's length
+    if preset_name == "quick" and not scenario(env).multi_agent:  # settings that follow the run's length
         if "buffer_size" not in (overrides or {}):
             # Keep every transition, as the paper's protocol does (buffer = steps = 10⁶).
             fields["buffer_size"] = max(fields["total_steps"], fields["batch_size"])

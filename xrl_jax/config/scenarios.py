@@ -1,7 +1,8 @@
 """The facts of each scenario in one table: its observation layout (the set of objects whose mixture
 weights are the explanation), whether it is multi-agent, what is reported over seeds, what the
 report's table and comparisons show, and its yardstick. Every module asks this table rather than
-testing the scenario's name."""
+testing the scenario's name. A user's own env joins the table through
+:func:`xrl_jax.custom_envs.register_env`, which reads its facts off the env (:func:`register_scenario`)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,11 @@ INTERSECTION_SUMMARY = (
     ("avg_early_terminations", "early terminations"),
     ("avg_mean_velocity", "mean velocity"),
 )
+CUSTOM_SUMMARY = (  # a user's env: what every episode has
+    ("avg_return", "final return"),
+    ("avg_episode_length", "episode length"),
+    ("avg_terminated", "terminated share"),
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +42,15 @@ class Scenario:
     table_keys: tuple[str, ...]  # the report's columns; the first two are its figure's (Fig. 5/6/7)
     improvement_keys: tuple[str, ...]  # P(explainable > baseline) is taken on these
     yardstick: str  # what the report compares the agents with
+    on_tracks: bool = True  # racing: trains on generated tracks, evaluates on fixed ones
+    actions: str = "both"  # "both" (a *_discrete variant in envs), "continuous" or "discrete" (one env)
+    max_episode_steps: int | None = None  # a user's env: where the evaluation stops an episode
+    object_xy: tuple[int, int] | None = None  # a user's env: the object features that are its x, y
+
+    @property
+    def custom(self) -> bool:
+        """A user's env (:func:`register_scenario`): its own reset starts every episode."""
+        return self.name not in BUILT_IN
 
     def metric_label(self, key: str) -> str:
         return dict(self.summary_metrics)[key]
@@ -58,15 +73,50 @@ SCENARIOS: dict[str, Scenario] = {
     "intersection": Scenario(
         "intersection", "vehicles_set", 8, 7, 66, True, INTERSECTION_SUMMARY,
         ("avg_trips_completed", "avg_early_terminations", "avg_return"),
-        ("avg_trips_completed", "avg_early_terminations"), "scripted driver",
+        ("avg_trips_completed", "avg_early_terminations"), "scripted driver", on_tracks=False,
     ),
 }  # fmt: skip
+BUILT_IN = tuple(SCENARIOS)  # == names.ENVS (a test checks)
 MULTI_AGENT_ENVS = tuple(name for name, facts in SCENARIOS.items() if facts.multi_agent)
 
 
 def scenario(name: str) -> Scenario:
-    """The facts of scenario ``name`` (one of :data:`~xrl_jax.config.names.ENVS`, the table's keys)."""
+    """The facts of scenario ``name``: a built-in one (:data:`~xrl_jax.config.names.ENVS`) or one
+    registered in this process."""
     try:
         return SCENARIOS[name]
-    except KeyError:
-        raise ConfigError(f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)}") from None
+    except (KeyError, TypeError):
+        raise ConfigError(
+            f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)} (a user's env is known once "
+            "xrl_jax.register_env has registered it in this process; scripts: --import the module that does)"
+        ) from None
+
+
+def known_envs() -> tuple[str, ...]:
+    """The built-in scenarios and the user's envs registered so far."""
+    return tuple(SCENARIOS)
+
+
+def custom_scenario(
+    name: str, set_key: str, num_objects: int, object_features: int, state_dim: int, actions: str,
+    max_episode_steps: int, object_xy: tuple[int, int] | None = None,
+) -> Scenario:  # fmt: skip
+    """The facts of a user's single-agent env, its evaluation the env's own resets."""
+    return Scenario(
+        name, set_key, num_objects, object_features, state_dim, False, CUSTOM_SUMMARY,
+        ("avg_return", "avg_terminated"), ("avg_return",), "none", on_tracks=False, actions=actions,
+        max_episode_steps=max_episode_steps, object_xy=object_xy,
+    )  # fmt: skip
+
+
+def register_scenario(facts: Scenario) -> None:
+    """Add (or replace) a user's scenario; a built-in one cannot be replaced."""
+    if facts.name in BUILT_IN:
+        raise ConfigError(f"{facts.name!r} is a built-in scenario; register your env under another name")
+    SCENARIOS[facts.name] = facts
+
+
+def unregister_scenario(name: str) -> None:
+    """Forget a user's scenario (built-in ones stay)."""
+    if name not in BUILT_IN:
+        SCENARIOS.pop(name, None)

@@ -11,8 +11,8 @@ from typing import Any
 
 from xrl_jax.config.agent import AgentConfig
 from xrl_jax.config.checks import ConfigError, check_choice, check_known, is_int, is_number, require, setting
-from xrl_jax.config.names import ALGOS, ENVS, MAX_VEHICLES, PRESETS, SWEEPABLE_FIELDS
-from xrl_jax.config.scenarios import MULTI_AGENT_ENVS
+from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, MAX_VEHICLES, PRESETS, SWEEPABLE_FIELDS
+from xrl_jax.config.scenarios import Scenario, scenario
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,7 +43,9 @@ class TrainConfig:
     )
     track_feed_size: int = setting(128, "fresh tracks generated ahead per seed (about 53 KB each)")
     track_seed: int = setting(0, "seed of the training tracks (a fixed bank, or each seed's fresh stream)")
-    eval_track_seed: int = setting(1, "seed of the evaluation tracks, disjoint from the training tracks")
+    eval_track_seed: int = setting(
+        1, "seed of the evaluation tracks, disjoint from the training tracks (a user's env: of its resets)"
+    )
     reinit_steps: int = setting(
         0, "re-initialise the agent (not the buffer) every this many steps; 0 = never"
     )
@@ -62,17 +64,27 @@ class TrainConfig:
         _validate_train(self)
 
     @property
+    def scenario(self) -> Scenario:
+        return scenario(self.env)
+
+    @property
     def env_name(self) -> str:
-        """The registry name: discrete agents use the 12-way action variant."""
-        return self.env + ("_discrete" if self.agent.is_discrete else "")
+        """The registry name: on a built-in scenario, discrete agents use the 12-way action variant;
+        a user's env is one env with one action space."""
+        both = self.scenario.actions == "both"
+        return self.env + ("_discrete" if both and self.agent.is_discrete else "")
 
     @property
     def multi_agent(self) -> bool:
-        return self.env in MULTI_AGENT_ENVS
+        return self.scenario.multi_agent
+
+    @property
+    def on_tracks(self) -> bool:
+        return self.scenario.on_tracks
 
     @property
     def fresh_tracks(self) -> bool:  # racing trains on fresh tracks unless a fixed bank is asked for
-        return self.train_tracks == 0 and not self.multi_agent
+        return self.train_tracks == 0 and self.on_tracks
 
     @property
     def buffer_layout(self) -> str:
@@ -159,8 +171,14 @@ def train_field_names() -> list[str]:
 
 
 def _validate_train(cfg: TrainConfig) -> None:
-    for name, choices in (("env", ENVS), ("algo", ALGOS), ("preset", PRESETS)):
+    for name, choices in (("algo", ALGOS), ("preset", PRESETS)):
         check_choice("", name, getattr(cfg, name), choices)
+    actions = cfg.scenario.actions  # raises for an unknown env, saying how a user's env is registered
+    require(
+        actions == "both" or (cfg.algo in CONTINUOUS_ALGOS) == (actions == "continuous"),
+        f"{cfg.env} has {actions} actions: train it with "
+        f"{'sac or xsac' if actions == 'continuous' else 'dsac or xdsac'}, not {cfg.algo}",
+    )
     require(
         isinstance(cfg.agent, AgentConfig), f"agent must be an AgentConfig, got {type(cfg.agent).__name__}"
     )
@@ -212,7 +230,7 @@ def _validate_train(cfg: TrainConfig) -> None:
         )
     require(cfg.warmup_steps >= e, f"warmup_steps ({cfg.warmup_steps}) must be at least num_envs ({e})")
     require(
-        cfg.fresh_tracks or cfg.multi_agent or cfg.track_seed != cfg.eval_track_seed,
+        cfg.fresh_tracks or not cfg.on_tracks or cfg.track_seed != cfg.eval_track_seed,
         f"track_seed and eval_track_seed are both {cfg.track_seed}: "
         "the evaluation tracks would be training tracks",
     )

@@ -1,6 +1,7 @@
 """The evaluation protocols, below the trainer: the racing scenarios on fixed held-out tracks
 (:mod:`~xrl_jax.evaluation.protocol`), the Intersection on fixed episodes
-(:mod:`~xrl_jax.evaluation.multiagent`), and the yardsticks scored the same way
+(:mod:`~xrl_jax.evaluation.multiagent`), a user's env from its own reset
+(:mod:`~xrl_jax.evaluation.resets`), and the yardsticks scored the same way
 (:mod:`~xrl_jax.evaluation.yardsticks`). All compile to one jittable function of (key, state)."""
 
 from xrl_jax.evaluation.multiagent import (
@@ -17,6 +18,7 @@ from xrl_jax.evaluation.protocol import (
     make_evaluate_policy,
     summarize_episodes,
 )
+from xrl_jax.evaluation.resets import make_evaluate_resets, reset_episode_keys
 from xrl_jax.evaluation.yardsticks import (
     evaluate_yardstick,
     hand_controller_evaluation,
@@ -36,6 +38,8 @@ __all__ = [
     "make_evaluate_multiagent",
     "make_evaluate_multiagent_policy",
     "make_evaluate_policy",
+    "make_evaluate_resets",
+    "reset_episode_keys",
     "scripted_driver_evaluation",
     "summarize_episodes",
     "yardstick_evaluation",

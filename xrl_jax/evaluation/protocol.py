@@ -126,7 +126,8 @@ def make_evaluate_policy(env, eval_params, policy, num_episodes: int):
 
 
 def summarize_episodes(episodes: dict[str, Any]) -> dict[str, Any]:
-    """The §6.1 averages of one seed's evaluation, plus the per-episode returns (host side)."""
+    """The §6.1 averages of one seed's evaluation, plus the per-episode returns (host side); a user's
+    env reports return, episode length and the share of episodes its env terminated."""
     if "trips_completed" in episodes:  # multi-agent: the env's metrics (docs/carenv-intersection.md §8.8)
         out = {f"avg_{k}": float(np.mean(v)) for k, v in episodes.items() if k != "return"}
         returns = np.asarray(episodes["return"], np.float64)
@@ -137,6 +138,13 @@ def summarize_episodes(episodes: dict[str, Any]) -> dict[str, Any]:
         }
     returns = np.asarray(episodes["return"], np.float64)
     terminated = np.asarray(episodes["terminated"], bool)
+    if "track_velocity" not in episodes:  # a user's env (xrl_jax.evaluation.resets)
+        return {
+            "avg_return": float(returns.mean()),
+            "avg_episode_length": float(np.mean(episodes["length"])),
+            "avg_terminated": float(terminated.mean()),
+            "episode_returns": [round(float(r), 6) for r in returns],
+        }
     early = terminated & (np.asarray(episodes["last_reward"]) < EARLY_TERMINATION_REWARD)
     return {
         "avg_return": float(returns.mean()),

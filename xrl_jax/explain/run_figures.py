@@ -4,7 +4,8 @@ the frames (PNG, GIF, MP4) and per-step attributions written.
 
 Racing runs drive one of the run's fixed evaluation tracks; Intersection runs replay one of its
 evaluation episodes (8 vehicles, the evaluation's traffic) with every car driven by the agent,
-following one vehicle slot. It restores agents through :func:`xrl_jax.train.load_trained_agent`,
+following one vehicle slot; runs on a user's env replay one of its evaluation episodes
+(:mod:`xrl_jax.explain.set_figure`). It restores agents through :func:`xrl_jax.train.load_trained_agent`,
 so it sits above the trainer; the figure modules need matplotlib.
 """
 
@@ -17,16 +18,12 @@ import jax
 import numpy as np
 
 from envs.intersection import MAX_AGENTS
-from xrl_jax.config import ENVS, MULTI_AGENT_ENVS
+from xrl_jax.config import MULTI_AGENT_ENVS, ConfigError, scenario
 from xrl_jax.explain.explanations import (
     make_episode_rollout,
     make_multiagent_episode_rollout,
     single_track_params,
 )
-
-# Single-agent scenarios drive fixed evaluation tracks; multi-agent ones replay evaluation episodes
-# with fixed env keys, following one of the MAX_AGENTS vehicle slots.
-EPISODE_ENVS = tuple(env for env in ENVS if env not in MULTI_AGENT_ENVS)
 
 
 class ExplainError(ValueError):
@@ -69,10 +66,14 @@ def explain_run(request: FigureRequest, note=print) -> str:
     from xrl_jax.train import load_trained_agent
 
     env = read_run_env(request.run)  # None: no readable config, which the restore reports
-    if env is not None and env not in EPISODE_ENVS + MULTI_AGENT_ENVS:
-        supported = ", ".join(EPISODE_ENVS + MULTI_AGENT_ENVS)
-        raise ExplainError(f"episodes of {env} runs are not supported (only {supported})")
+    try:
+        facts = None if env is None else scenario(env)
+    except ConfigError as err:  # a user's env that this process has not registered
+        raise ExplainError(str(err)) from None
     multi_agent = env in MULTI_AGENT_ENVS
+    custom = facts is not None and facts.custom
+    if custom and (request.is_video or request.slot is not None or request.all_slots or request.mirrored):
+        raise ExplainError(f"{env} is a user's env: its figure is one PNG (no video, --slot or --mirrored)")
     if not multi_agent and (request.slot is not None or request.all_slots):
         raise ExplainError("--slot and --all-slots are for intersection runs only")
     if multi_agent and request.slot is not None and request.slot >= MAX_AGENTS:
@@ -92,6 +93,8 @@ def explain_run(request: FigureRequest, note=print) -> str:
         )
     if multi_agent:
         return _explain_intersection(request, cfg, trainer, agent_state)
+    if custom:
+        return _explain_custom(request, cfg, trainer, agent_state)
     return _explain_track(request, cfg, trainer, agent_state)
 
 
@@ -183,3 +186,32 @@ def _explain_intersection(request: FigureRequest, cfg, trainer, agent_state) -> 
         f"{request.out} ({figures.length} steps, slot {slot}: {int(acted[:, slot].sum())} steps occupied by "
         f"{cars} car(s); return of all agents {total:.2f}); attributions: {request.attributions}"
     )
+
+
+def _explain_custom(request: FigureRequest, cfg, trainer, agent_state) -> str:
+    """A user's env: replay evaluation episode ``request.episode`` (its fixed reset) and draw one step."""
+    from envs.render import save_png
+    from xrl_jax.explain.episodes import write_attributions
+    from xrl_jax.explain.set_figure import draw_set_step, make_set_episode_rollout, set_attributions
+
+    facts = cfg.scenario
+    max_steps = (
+        facts.max_episode_steps
+        if request.max_steps is None
+        else min(request.max_steps, facts.max_episode_steps)
+    )
+    rollout = make_set_episode_rollout(trainer.env, trainer.agent, facts.set_key, max_steps)
+    key = jax.random.PRNGKey(request.key)
+    record = jax.device_get(
+        rollout(request.episode, cfg.eval_track_seed, key, trainer.eval_params, agent_state)
+    )
+    length = int(np.sum(record["valid"]))
+    _check_step(request, length)
+    title = f"{cfg.env} {cfg.algo} seed {request.seed} episode {request.episode} step {request.step}"
+    save_png(
+        draw_set_step(record, request.step, facts.object_xy, title, (request.width, request.height)),
+        request.out,
+    )
+    write_attributions(set_attributions(record, request.threshold), request.attributions)
+    total = float(np.sum(np.where(record["valid"], record["reward"], 0.0)))
+    return f"{request.out} ({length} steps, return {total:.2f}); attributions: {request.attributions}"

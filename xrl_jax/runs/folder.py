@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from xrl_jax.config import TrainConfig
+from xrl_jax.config.scenarios import known_envs
 
 LOCK_NAME = ".lock"
 TEMP_MARK = ".tmp"  # ``.<name>.tmp<pid>``: what write_atomic leaves behind when it is killed mid-write
@@ -163,6 +164,12 @@ def read_run_config(folder: str | Path):
     if not path.is_file():
         raise RunFolderError(f"{folder} is not a results folder (no config.json)")
     document = read_document(path, "the run's configuration")
+    env = read_run_env(folder)
+    if env is not None and env not in known_envs():  # a user's env this process has not registered
+        raise RunFolderError(
+            f"{folder} trained on {env!r}, an env this process has not registered: --import the module "
+            "that registers it (xrl_jax.register_env)"
+        )
     try:
         return TrainConfig.from_dict(document["config"])
     except (ValueError, KeyError, TypeError) as err:

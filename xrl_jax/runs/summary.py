@@ -131,7 +131,7 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
             "curve": [],  # likewise: sweep.points[i].curve
             "sweep": {"fields": [name for name, _ in cfg.sweep], "points": points},
         }
-    if not cfg.multi_agent:
+    if cfg.on_tracks:
         summary["training_tracks"] = _training_tracks(out, cfg)
     return summary
 

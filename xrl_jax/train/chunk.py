@@ -51,9 +51,10 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from envs.registry import user_factory
 from xrl_jax.agents import Agent, HyperParams, make_hparams
 from xrl_jax.config import HOST_ONLY_FIELDS, TrainConfig
-from xrl_jax.evaluation import make_evaluate, make_evaluate_multiagent
+from xrl_jax.evaluation import make_evaluate, make_evaluate_multiagent, make_evaluate_resets
 from xrl_jax.sets import MEMBERS_AXIS
 from xrl_jax.tracks import make_envs
 from xrl_jax.train.episodes import window_means
@@ -206,7 +207,8 @@ def get_trainer(cfg: TrainConfig, devices: list | None = None) -> Trainer:
         checkpoint_interval=cfg.log_interval,
         total_steps=cfg.total_steps if cfg.total_steps % cfg.log_interval else cfg.log_interval,
     )
-    cache_key = (key, tuple(d.id for d in devices))
+    # A user's env registered again under the same name is another env: its factory is in the key.
+    cache_key = (key, cfg.scenario, user_factory(cfg.env), tuple(d.id for d in devices))
     if cache_key not in _TRAINER_CACHE:
         if len(_TRAINER_CACHE) >= 4:
             _TRAINER_CACHE.pop(next(iter(_TRAINER_CACHE)))
@@ -259,7 +261,7 @@ def chunk_report(parts: MemberParts, state: RunState, outs, start_vector_step) -
     metrics["train/ent_coef"] = jnp.exp(state.agent.log_alpha)  # the current α: always there
     has_data.pop("train/ent_coef", None)
     average("rollout/avg_step_reward", jnp.sum(outs["reward_sum"]), jnp.sum(outs["reward_count"]))
-    rollout, window_filled = window_means(state.window, cfg.multi_agent)
+    rollout, window_filled = window_means(state.window, cfg.scenario)
     metrics.update(rollout)
     has_data.update({name: window_filled for name in rollout if name != "rollout/episodes"})
     if cfg.multi_agent:
@@ -310,9 +312,19 @@ def chunk_block(parts: MemberParts, state: RunState, start_vector_step):
 
 
 def evaluate_block(parts: MemberParts, env, eval_params):
-    """One device's block of members through the §6.1 protocol (each on a fresh evaluation key)."""
-    make = make_evaluate_multiagent if parts.cfg.multi_agent else make_evaluate
-    evaluate_one = make(env, eval_params, parts.agent, parts.cfg.eval_episodes)
+    """One device's block of members through their scenario's evaluation protocol (each on a fresh
+    evaluation key): §6.1's fixed tracks, the Intersection's fixed episodes, or a user's env's fixed
+    resets."""
+    cfg = parts.cfg
+    if cfg.multi_agent:
+        evaluate_one = make_evaluate_multiagent(env, eval_params, parts.agent, cfg.eval_episodes)
+    elif cfg.on_tracks:
+        evaluate_one = make_evaluate(env, eval_params, parts.agent, cfg.eval_episodes)
+    else:  # a user's env: fixed episodes from its own reset
+        steps = cfg.scenario.max_episode_steps
+        evaluate_one = make_evaluate_resets(
+            env, eval_params, parts.agent, cfg.eval_episodes, steps, cfg.eval_track_seed
+        )
 
     def evaluate_member(state: RunState):
         key, sub = jax.random.split(state.eval_key)

@@ -6,6 +6,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from xrl_jax.config import Scenario
+
 EPISODE_WINDOW = 100  # rollout metrics average over the last 100 finished episodes (§6.2)
 EARLY_TERMINATION_REWARD = -0.5  # ETR: terminated with a last reward below this (§6.1)
 
@@ -43,10 +45,10 @@ def window_add(window: EpisodeWindow, done, returns, lengths, early, velocity) -
     )
 
 
-def window_means(window: EpisodeWindow, multi_agent: bool = False) -> tuple[dict[str, jax.Array], jax.Array]:
+def window_means(window: EpisodeWindow, scenario: Scenario) -> tuple[dict[str, jax.Array], jax.Array]:
     """Averages over the window, and whether it holds any episode yet (the averages are 0 until
     then); multi-agent windows hold per-agent episodes (termination or the 60 s restart) and the
-    env's mean velocity instead of the track velocity."""
+    env's mean velocity instead of the track velocity; a user's env has only returns and lengths."""
     filled = jnp.minimum(window.count, EPISODE_WINDOW)
     mask = jnp.arange(EPISODE_WINDOW) < filled
     denom = jnp.maximum(filled, 1)
@@ -57,10 +59,10 @@ def window_means(window: EpisodeWindow, multi_agent: bool = False) -> tuple[dict
     means = {
         "rollout/avg_episode_return": mean(window.returns),
         "rollout/avg_episode_length": mean(window.lengths),
-        "rollout/early_termination_rate": mean(window.early),
-        ("rollout/avg_mean_velocity" if multi_agent else "rollout/avg_track_velocity"): mean(
-            window.track_velocity
-        ),
         "rollout/episodes": window.count,
     }
+    if not scenario.custom:  # CarEnv's: a crash ends an episode with reward below -0.5
+        means["rollout/early_termination_rate"] = mean(window.early)
+        velocity = "rollout/avg_mean_velocity" if scenario.multi_agent else "rollout/avg_track_velocity"
+        means[velocity] = mean(window.track_velocity)
     return means, filled > 0

@@ -42,9 +42,9 @@ def evaluate_run(
     on fresh ones, or more episodes than the set has tracks."""
     run = Path(run)
     cfg = read_run_config(run)
-    if cfg.multi_agent:
+    if not cfg.on_tracks:
         raise RunFolderError(
-            "intersection runs have no tracks; their evaluation episodes are in the run's eval/"
+            f"{cfg.env} runs have no tracks; their evaluation episodes are in the run's eval/"
         )
     if tracks == "train" and cfg.fresh_tracks:
         raise RunFolderError(

@@ -208,7 +208,7 @@ def racing_step(parts: MemberParts, state: RunState, t):
     new_state = state.with_venv_state(
         venv_state, agent=agent_state, buffer=buffer, obs=next_obs, key=key,
         **episode_bookkeeping(parts, state, reward, jnp.ones(done.shape, bool), done, terminated,
-                              info["avg_track_velocity"]),
+                              info.get("avg_track_velocity", 0.0)),  # a user's env has none
     )  # fmt: skip
     out = {
         "reward_sum": jnp.sum(jnp.where(truncated, 0.0, reward)),

@@ -1,0 +1,179 @@
+"""A user's own env trained like a built-in scenario (``xrl_jax.register_env``): the layout is read
+off the env and a bad env fails in one line; the toy env of docs/examples/nearest_goal.py trains
+with XDSAC through ``run.py --import``, learns (against its own untrained agents on the same
+evaluation episodes), and its explanation figure and attributions are drawn by ``explain.py``."""
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from train_support import call, load_script, one_line_error
+
+import xrl_jax
+from envs.core import Box, Dict, Discrete
+from xrl_jax.config import ENVS, ConfigError, resolve_config
+from xrl_jax.config.scenarios import BUILT_IN, scenario
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "docs" / "examples" / "nearest_goal.py"
+STEPS, SEEDS, EPISODES = 4_000, 2, 32
+RUN = ["--env", "nearest_goal", "--algo", "xdsac", "--preset", "quick", "--seeds", str(SEEDS),
+       "--steps", str(STEPS), "--set", "eval_interval=2000", "--set", "log_interval=500",
+       "--set", f"eval_episodes={EPISODES}", "--quiet"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def example():
+    module = load_script_at(EXAMPLE, "nearest_goal")
+    yield module
+    xrl_jax.unregister_env("nearest_goal")
+
+
+def load_script_at(path: Path, name: str):
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_register_env_reads_the_layout_off_the_env(example):
+    facts = scenario("nearest_goal")
+    assert (facts.set_key, facts.num_objects, facts.object_features, facts.state_dim) == (
+        "goals_set",
+        8,
+        3,
+        2,
+    )
+    assert facts.actions == "discrete" and facts.max_episode_steps == 40 and facts.custom
+    assert BUILT_IN == ENVS and not any(scenario(name).custom for name in ENVS)
+    cfg = resolve_config("nearest_goal", "xdsac", "smoke")
+    assert cfg.env_name == "nearest_goal" and not cfg.on_tracks and not cfg.fresh_tracks
+    with pytest.raises(ConfigError, match="discrete actions: train it with dsac or xdsac, not xsac"):
+        resolve_config("nearest_goal", "xsac", "smoke")
+
+
+@pytest.mark.parametrize(
+    "change, fragment",
+    [
+        ({"observation_space": Dict({"goals_set": Box(-1, 1, (8, 3))})}, "must be Dict"),
+        ({"observation_space": Dict({"state": Box(-1, 1, (2,)), "goals_set": Box(-1, 1, (8,))})}, "(O, F)"),
+        ({"action_space": Box(0, 1, (2,))}, "Box(-1, 1, (A,))"),
+        ({"action_space": Discrete(5), "max_episode_steps": 0}, "max_episode_steps"),
+        ({"object_xy": (0, 1)}, "object_xy"),
+        ({"name": "tracking"}, "built-in"),
+    ],
+)
+def test_an_env_the_agents_cannot_train_on_fails_in_one_line(example, change, fragment):
+    change = dict(change)
+    name = change.pop("name", "bad_env")
+    steps = change.pop("max_episode_steps", 40)
+    object_xy = change.pop("object_xy", None)
+
+    class Changed(example.NearestGoal):
+        pass
+
+    for method, space in change.items():
+        setattr(Changed, method, lambda self, params=None, space=space: space)
+    env = Changed()
+    with pytest.raises(ConfigError, match=fragment.replace("(", r"\(").replace(")", r"\)")) as error:
+        xrl_jax.register_env(name, lambda: (env, env.default_params), steps, object_xy)
+    assert "\n" not in str(error.value)
+    with pytest.raises(ConfigError, match="register_env"):
+        resolve_config(name if name != "tracking" else "bad_env", "xdsac", "smoke")
+
+
+def untrained_returns(out: Path) -> np.ndarray:
+    """(seeds, episodes) returns of the run's agents as initialised, on its evaluation episodes."""
+    from xrl_jax.runs.folder import read_run_config
+    from xrl_jax.train import get_trainer
+    from xrl_jax.train.chunk import member_hparams
+
+    cfg = read_run_config(out)
+    trainer = get_trainer(cfg)
+    members = np.arange(cfg.num_members)
+    state = trainer.init(cfg.seed, members, member_hparams(cfg, trainer.agent, members))
+    return np.asarray(jax.device_get(trainer.evaluate(state)[1]["return"]))
+
+
+def test_xdsac_learns_the_toy_env_and_explains_it(example, capsys, tmp_path):
+    run, explain = load_script("run", "run_custom_env"), load_script("explain", "explain_custom_env")
+    out = tmp_path / "run"
+    status, _, err = call(run, capsys, "--import", str(EXAMPLE), *RUN, "--out", str(out))
+    assert status == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"] and set(summary["aggregate"]) >= {
+        "avg_return",
+        "avg_episode_length",
+        "avg_terminated",
+    }
+    assert list((out / "checkpoints").iterdir())
+    final = np.array([json.loads(path.read_text().splitlines()[-1])["episode_returns"]
+                      for path in sorted((out / "eval").glob("seed_*.jsonl"))])  # fmt: skip
+    assert final.shape == (SEEDS, EPISODES)
+    # XDSAC evaluates greedily, so both evaluations are deterministic given the weights; the paired
+    # per-episode gain must clear 3 standard errors of its mean over the 32 episodes, for every seed.
+    gain = final - untrained_returns(out)
+    standard_error = gain.std(axis=1, ddof=1) / np.sqrt(EPISODES)
+    assert np.all(gain.mean(axis=1) > 3 * standard_error), (gain.mean(axis=1), standard_error)
+
+    figure, attributions = tmp_path / "explanation.png", tmp_path / "explanation.jsonl"
+    args = [
+        "--import",
+        str(EXAMPLE),
+        "--run",
+        str(out),
+        "--out",
+        str(figure),
+        "--attributions",
+        str(attributions),
+    ]
+    status, printed, err = call(explain, capsys, *args, "--step", "1", "--threshold", "0")
+    assert status == 0, err
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "return" in printed
+    rows = [json.loads(line) for line in attributions.read_text().splitlines()]
+    assert rows and rows[0]["step"] == 0
+    for row in rows:  # the weights of the present goals are a distribution over them
+        weights = [item["weight"] for item in row["objects"]]
+        assert all(item["features"][0] == 1.0 for item in row["objects"])
+        # 8 float32 softmax weights, each off by a few ulps (6e-8): 1e-5 is far above their sum's error
+        assert sum(weights) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_a_run_on_an_env_nobody_registered_says_how_to_register_it(capsys, tmp_path):
+    run = load_script("run", "run_custom_env_missing")
+    status, _, err = call(run, capsys, "--import", str(tmp_path / "missing.py"), "--env", "nearest_goal")
+    one_line_error(status, err, "--import", "no such file")
+    with pytest.raises(ConfigError, match=r"xrl_jax\.register_env"):
+        resolve_config("not_registered_anywhere", "xdsac", "smoke")
+
+
+def test_the_evaluation_replays_fixed_episodes(example):
+    """Episode i starts from the same state in every evaluation, whatever the evaluation key."""
+    from xrl_jax.evaluation import reset_episode_keys
+
+    env, params = example.make_nearest_goal()
+    first, _ = reset_episode_keys(1, 4)
+    again, _ = reset_episode_keys(1, 6)
+    assert jnp.array_equal(first, again[:4])
+    starts = jax.vmap(env.reset_env, in_axes=(0, None))(first, params)[0]["goals_set"]
+    assert len({np.asarray(s).tobytes() for s in starts}) == 4
+
+
+def test_a_registered_env_is_served_by_envs_make_and_envs_gymnax(example):
+    import envs
+
+    env, params = envs.make("nearest_goal")
+    # (run.py --import in another test may have loaded the module again: compare by name)
+    assert type(env).__name__ == "NearestGoal" and envs.action_space("nearest_goal").n == 5
+    pytest.importorskip("gymnax", reason="the gymnax extra is not installed (pip install -e '.[gymnax]')")
+    from envs import gymnax as carenv_gymnax
+
+    env, params = carenv_gymnax.make("nearest_goal", flat_obs=True)
+    obs, _ = env.reset(jax.random.PRNGKey(0), params)
+    assert obs.shape == (2 + 8 * 3,) and params.max_steps_in_episode == 40
