@@ -14,6 +14,10 @@ car at step 0) and shows that car's explanation: weight index 0 is the neutral (
 component, drawn at the ego car, index k >= 1 the vehicle in row k-1 of its observation. A slot is
 refilled by a new car after its car finished or crashed; the frames follow the slot (the title
 names the car and marks a new one) and show the top view without glyphs while the slot is empty.
+
+Runs on a user's env (``--import`` the module that registers it) replay evaluation episode ``j`` from
+its fixed reset and draw one PNG: the objects at step ``k`` by weight, and every slot's weight over
+the episode (docs/ecosystem.md).
 """
 
 from __future__ import annotations

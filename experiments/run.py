@@ -1,4 +1,5 @@
-"""Train SAC / DSAC / XSAC / XDSAC on a CarEnv scenario: ``python experiments/run.py --env tracking``.
+"""Train SAC / DSAC / XSAC / XDSAC on a CarEnv scenario: ``python experiments/run.py --env tracking``,
+or on your own env (``--import`` the module that registers it, docs/ecosystem.md).
 
 All seeds of a run, and all points of a hyper-parameter sweep (``--sweep kappa=0,0.01``), train in
 one program: the whole SAC loop is one compiled chunk, vmapped over members (seed x sweep point) and
