@@ -1,7 +1,8 @@
 """A user's own env trained like a built-in scenario (``xrl_jax.register_env``): the layout is read
 off the env and a bad env fails in one line; the toy env of docs/examples/nearest_goal.py trains
 with XDSAC through ``run.py --import``, learns (against its own untrained agents on the same
-evaluation episodes), and its explanation figure and attributions are drawn by ``explain.py``."""
+evaluation episodes), ``report.py`` tables it, and ``explain.py`` draws its explanation figure and
+attributions."""
 
 import json
 from pathlib import Path
@@ -121,6 +122,12 @@ def test_xdsac_learns_the_toy_env_and_explains_it(example, capsys, tmp_path):
     gain = final - untrained_returns(out)
     standard_error = gain.std(axis=1, ddof=1) / np.sqrt(EPISODES)
     assert np.all(gain.mean(axis=1) > 3 * standard_error), (gain.mean(axis=1), standard_error)
+
+    report = load_script("report", "report_custom_env")
+    status, _, err = call(report, capsys, "--import", str(EXAMPLE), str(out), "--out", str(tmp_path / "rep"))
+    assert status == 0, err
+    table = (tmp_path / "rep" / "results_nearest_goal.md").read_text()
+    assert "| final return | terminated share |" in table and "paper:" not in table
 
     figure, attributions = tmp_path / "explanation.png", tmp_path / "explanation.jsonl"
     args = [

@@ -118,6 +118,8 @@ def results_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
         }
         for key, label in metrics:
             row[label] = _cell(run.summary["aggregate"].get(key))
+            if scenario(env).custom:  # a user's env: the paper has no value to stand beside it
+                continue
             same_protocol = run.cfg.preset == "paper"
             row[f"paper: {label}"] = _paper_cell(
                 published.get((env, run.cfg.algo, key)) if same_protocol else None
@@ -374,7 +376,7 @@ def _write_report(
         lines += [f"## {env}", ""]
         rows = results_rows(runs, env)
         references = []
-        if controller:
+        if controller and not scenario(env).custom:  # a user's env has no yardstick
             reference_rows, references = controller_rows(runs, env, controller_speed)
             rows += reference_rows
             all_references += references
