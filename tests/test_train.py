@@ -163,8 +163,11 @@ def test_memory_plan_groups_seeds_or_refuses(smoke_trainer):
     plan = T.plan_memory(trainer, five, budget_bytes=shared + 2 * sizes["total"] + 1)
     assert plan["groups"] == [[0, 1, 2], [3, 4]] or plan["groups"] == [[0, 1], [2, 3], [4]]
     assert all(len(g) <= 2 for g in plan["groups"]) and sum(map(len, plan["groups"])) == 5
-    assert T.plan_memory(trainer, five, budget_bytes=10**15)["groups"] == [[0, 1, 2, 3, 4]]
-    assert len(T.plan_memory(trainer, five.replace(max_group_size=2), budget_bytes=10**15)["groups"]) == 3
+    assert plan["groups_limited_by"] == "memory"
+    roomy = T.plan_memory(trainer, five, budget_bytes=10**15)
+    assert roomy["groups"] == [[0, 1, 2, 3, 4]] and roomy["groups_limited_by"] is None
+    capped = T.plan_memory(trainer, five.replace(max_group_size=2), budget_bytes=10**15)
+    assert len(capped["groups"]) == 3 and capped["groups_limited_by"] == "max_group_size"
     with pytest.raises(MemoryPlanError, match="one member needs about"):
         T.plan_memory(trainer, five, budget_bytes=sizes["total"] // 2)
 

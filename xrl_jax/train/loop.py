@@ -186,10 +186,11 @@ class _HostLoop:
         smallest = int(hosts.gathered(len(plan["groups"][0])).min())  # all processes run the same groups
         if smallest < len(plan["groups"][0]):
             plan = plan_memory(self.trainer, cfg.replace(max_group_size=smallest))
+            plan["groups_limited_by"] = "memory"  # another process's
         devices = self.trainer.num_devices
         if resume and paths["plan"].exists():  # keep the grouping the checkpoints were made with
             stored_groups, was = read_checkpoint_plan(self.out, cfg.num_members)
-            plan["groups"] = stored_groups
+            plan["groups"], plan["groups_limited_by"] = stored_groups, "the checkpoints"
             padded = [len(padded_members(g, devices)) for g in stored_groups]
             if padded != [len(padded_members(g, was)) for g in stored_groups]:
                 raise ConfigError(
@@ -209,8 +210,11 @@ class _HostLoop:
             log(f"devices: {cfg.num_members} members over {devices} devices in {jax.process_count()} "
                 f"process(es), up to {per_device} per device")  # fmt: skip
         if len(groups) > 1:
-            log(f"memory: {cfg.num_members} members do not fit at once; running {len(groups)} groups of "
-                f"up to {len(groups[0])} one after another")  # fmt: skip
+            why = {
+                "max_group_size": f"max_group_size={cfg.max_group_size}",
+                "the checkpoints": "as the run began",
+            }.get(plan["groups_limited_by"], f"memory: {cfg.num_members} members do not fit at once")
+            log(f"{why}: running {len(groups)} groups of up to {len(groups[0])} one after another")
         # Two checkpoints kept per group, plus the one being written.
         needed = 3 * len(groups[0]) * (per_seed["buffer"] + per_seed["agent"] + per_seed["env"])
         needed //= jax.process_count()  # each process writes its members' share

@@ -102,8 +102,9 @@ def plan_memory(
         )
     members = cfg.num_members
     group = min(members, int(fit) * devices)
-    if cfg.max_group_size:
-        group = min(group, cfg.max_group_size)
+    limit = "memory" if group < members else None
+    if cfg.max_group_size and cfg.max_group_size < group:
+        group, limit = cfg.max_group_size, "max_group_size"
     num_groups = -(-members // group)
     group = -(-members // num_groups)  # balance the groups
     groups = [list(range(g * group, min((g + 1) * group, members))) for g in range(num_groups)]
@@ -113,6 +114,7 @@ def plan_memory(
         "budget_source": source,
         "devices": devices,
         "groups": groups,
+        "groups_limited_by": limit,  # what kept the members from running all at once, if anything did
     }
 
 
