@@ -60,9 +60,10 @@ TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
         total_steps=5_000_000, num_envs=2, warmup_steps=2_000, batch_size=512, buffer_size=15_000_000,
         log_interval=2_000, eval_interval=100_000, eval_episodes=20, checkpoint_interval=100_000,
         reinit_steps=500_001),
-    # The buffer keeps every agent transition (~2.7 per env step). One seed at a time: members in one
-    # program update in lockstep, each step as often as the member with the most vehicles needs, and on
-    # a 2-core CPU that made 4 seeds together 1.6x slower than one after another (docs/performance.md).
+    # The buffer keeps every agent transition (2.05 per env step in the quick runs' buffers). One seed at
+    # a time: members in one program update in lockstep, each step as often as the member with the most
+    # vehicles needs, and on a 2-core CPU that made 4 seeds together 1.6x slower than one after another
+    # (docs/performance.md).
     ("quick", "intersection"): dict(
         total_steps=200_000, num_envs=2, warmup_steps=2_000, batch_size=128, buffer_size=600_000,
         log_interval=1_000, eval_interval=10_000, eval_episodes=10, checkpoint_interval=10_000,
