@@ -38,6 +38,7 @@ def fake_run(folder: Path, env, algo, preset, returns, sweep=(), missing=()):
                 "avg_return": value / 2,
                 "avg_etr": 0.5,
                 "avg_episode_length": 9.0,
+                "episode_returns": [value / 2] * 3,
             },
             {
                 "step": cfg.total_steps,
@@ -45,6 +46,7 @@ def fake_run(folder: Path, env, algo, preset, returns, sweep=(), missing=()):
                 "avg_return": value,
                 "avg_etr": 0.1,
                 "avg_episode_length": 9.0,
+                "episode_returns": [value] * 3,
             },
         ]
         if env == "intersection":
@@ -234,3 +236,43 @@ def test_intersection_report_shows_trips_and_early_terminations_with_the_scripte
         "P(xdsac (quick, xdsac) > dsac (quick, dsac)) on completed trips, evaluation at step"
         in (out / "report.md").read_text()
     )
+
+
+def test_a_report_is_written_again_from_its_kept_records_with_a_run_added(folders, tmp_path):
+    """The report keeps each run's config and evaluations (runs/<folder>), without the per-episode
+    values; after the run folders are gone, those copies and one new run write the same tables again
+    with the new run's row added, and the kept copies are then exactly this report's runs."""
+    import shutil
+
+    out = tmp_path / "report"
+    write_report([folders["sac"], folders["dsac"], folders["xdsac"]], out)
+    first = {env: (out / f"results_{env}.csv").read_text() for env in ("tracking", "country_road")}
+    kept = sorted(p.name for p in (out / "runs").iterdir())
+    assert kept == ["dsac", "sac", "xdsac"]
+    original = (folders["sac"] / "eval" / "seed_0.jsonl").read_text().splitlines()
+    lines = (out / "runs" / "sac" / "eval" / "seed_0.jsonl").read_text().splitlines()
+    assert [json.loads(line) for line in lines] == [
+        {k: v for k, v in json.loads(line).items() if k != "episode_returns"} for line in original
+    ]
+    for name in ("sac", "dsac", "xdsac"):
+        shutil.rmtree(folders[name])
+
+    write_report([*sorted((out / "runs").iterdir()), folders["xsac"]], out)
+    assert (out / "results_country_road.csv").read_text() == first["country_road"]  # 3/4 seeds as before
+    tracking = (out / "results_tracking.csv").read_text().splitlines()
+    assert tracking[:2] == first["tracking"].splitlines() and tracking[2].startswith("xsac,quick,")
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["dsac", "sac", "xdsac", "xsac"]
+    assert not list(out.glob(".runs.*"))  # no staging or former copies left behind
+    found = json.loads((out / "improvement.json").read_text())
+    (xsac,) = [item for item in found if item["x"].startswith("xsac") and item["step"] == "final"]
+    assert xsac["estimate"] == pytest.approx(9 / 16)  # as test_improvement_probability_is_computed_as_by_hand
+
+
+def test_kept_records_of_two_runs_with_one_folder_name_are_both_kept(tmp_path):
+    """Two machines' folders of one name (a/tracking-sac, b/tracking-sac) are both reported; their
+    copies are kept side by side, the second with a suffix."""
+    runs = [fake_run(tmp_path / where / "tracking-sac", "tracking", "sac", "quick", [1.0, 2.0])
+            for where in ("a", "b")]  # fmt: skip
+    out = tmp_path / "report"
+    write_report(runs, out)
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["tracking-sac", "tracking-sac-2"]

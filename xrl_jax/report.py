@@ -3,7 +3,9 @@ beside ours, final-performance panels and learning curves per env (the paper's F
 sweep (Fig. 8), and the probability that each explainable agent improves on its baseline.
 
 Everything is read from the folders' records (``config.json``, ``eval/``), so a folder that is still
-running or lost a seed is reported as far as it goes, and says so.
+running or lost a seed is reported as far as it goes, and says so. The report keeps a copy of those
+records (``runs/<folder>``, a few kB a run), so that it can be written again, or with another run
+added, after the run folders themselves are gone.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,12 +23,14 @@ import numpy as np
 from xrl_jax import stats
 from xrl_jax.config import scenario
 from xrl_jax.evaluation import evaluate_yardstick
-from xrl_jax.runs.folder import RunFolderError, read_run_config
+from xrl_jax.runs.folder import RunFolderError, read_rows, read_run_config, run_paths
 from xrl_jax.runs.plots import format_step_axis, plot_sweep
 from xrl_jax.runs.summary import summarize_run, summary_metrics
 from xrl_jax.runs.tables import curve_label
 
 PAPER_RESULTS = Path(__file__).resolve().parents[1] / "docs" / "paper_results.json"
+RECORDS = "runs"  # the report's copy of the records of every run it reports
+RECORD_DROPS = ("episode_returns",)  # per-episode values: the bulk of an evaluation row, unused here
 BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
 ALGO_ORDER = ("sac", "xsac", "dsac", "xdsac")
 
@@ -326,17 +331,19 @@ def write_report(
 ) -> Path:
     """Read ``folders`` and write ``out``/report.md with the tables (``results_<env>.md/.csv``),
     figures (``<env>.png``, ``sweep_<folder>.png``) and improvement probabilities
-    (``improvement.json``, at the end and at the evaluation nearest ``early_fraction`` of the run);
-    returns the path of report.md. With ``controller`` or a ``controller_speed`` (m/s; None: each
-    driver's default), the tables and figures also show each scenario's yardstick driven on the runs'
-    evaluation (``controller.json``): the hand controller on the racing tracks, the scripted driver
-    on the Intersection. A folder given twice is reported once (``note`` takes a line about it);
-    :class:`ReportError` (one line) when a folder is not a run or ``out`` cannot be written."""
+    (``improvement.json``, at the end and at the evaluation nearest ``early_fraction`` of the run),
+    and the records it read (``runs/``, :func:`keep_records`); returns the path of report.md. With
+    ``controller`` or a ``controller_speed`` (m/s; None: each driver's default), the tables and
+    figures also show each scenario's yardstick driven on the runs' evaluation (``controller.json``):
+    the hand controller on the racing tracks, the scripted driver on the Intersection. A folder given
+    twice is reported once (``note`` takes a line about it); :class:`ReportError` (one line) when a
+    folder is not a run or ``out`` cannot be written."""
     controller = controller or controller_speed is not None
     out = Path(out)
     _make_report_folder(out)
     runs = [read_run(folder) for folder in distinct_folders(folders, note)]
     try:
+        keep_records(runs, out)
         return _write_report(runs, out, controller_speed, controller, early_fraction)
     except OSError as err:  # a folder that turned unwritable, a full disk
         raise ReportError(f"cannot write the report into {out}: {err.strerror or err}") from None
@@ -349,6 +356,38 @@ def _make_report_folder(out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ReportError(f"cannot create the report folder --out {out}: {err.strerror or err}") from None
+
+
+def keep_records(runs: list[Run], out: Path) -> list[Path]:
+    """Copy what the report reads of each run into ``out/runs/<folder name>``: its ``config.json`` and
+    its evaluation lines without their per-episode values. ``report.py out/runs/* NEW_RUN --out out``
+    then writes the report again with a run added, after the run folders are gone (a user's clone,
+    another machine). The copies replace the folder's earlier ones as a whole, so it holds exactly the
+    runs of this report; given as sources themselves, they are read before they are replaced. Runs
+    whose folders share a name are kept as ``<name>``, ``<name>-2``, ...; returns the copies' paths."""
+    staging, kept, former = out / f".{RECORDS}.new", out / RECORDS, out / f".{RECORDS}.old"
+    if former.exists() and not kept.exists():  # a report stopped between the two renames below
+        former.rename(kept)
+    for leftover in (staging, former):  # of a report that was stopped half-way
+        shutil.rmtree(leftover, ignore_errors=True)
+    names: list[str] = []
+    for run in runs:
+        name, index = run.folder.name, 1
+        while name in names:
+            index += 1
+            name = f"{run.folder.name}-{index}"
+        names.append(name)
+        source, copy = run_paths(run.folder), run_paths(staging / name)
+        copy["eval"].mkdir(parents=True)
+        shutil.copyfile(source["config"], copy["config"])
+        for lines in sorted(source["eval"].glob("*.jsonl")):
+            rows = [{k: v for k, v in row.items() if k not in RECORD_DROPS} for row in read_rows(lines)]
+            (copy["eval"] / lines.name).write_text("".join(json.dumps(row) + "\n" for row in rows))
+    if kept.exists():  # swapped, never deleted first: the old copies may be this report's sources
+        kept.rename(former)
+    staging.rename(kept)
+    shutil.rmtree(former, ignore_errors=True)
+    return [kept / name for name in names]
 
 
 def distinct_folders(folders: list[str | Path], note=None) -> list[Path]:
