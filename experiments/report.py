@@ -12,7 +12,8 @@ hand-written centre-line driver on the racing tracks, the scripted driver on the
 Folders that are still running or lost a seed are reported as far as they go, and marked
 incomplete; a folder given twice (under any path) is reported once, with a note. DIR/runs keeps a
 copy of what was read of each run (config and evaluations), so that `report.py DIR/runs/* NEW_RUN_DIR
---out DIR` adds a run after the original folders are gone.
+--out DIR` adds a run after the original folders are gone. Runs of one protocol from different base
+seeds (`--set seed=S`: a protocol's seeds trained a few at a time) are pooled into one row.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ from train_support import load_script
 
 from xrl_jax import stats
 from xrl_jax.config import parse_sweep, resolve_config
-from xrl_jax.report import improvements, read_run, results_rows, write_report
+from xrl_jax.report import improvements, read_run, read_runs, results_rows, write_report
 from xrl_jax.runs import config_document
 from xrl_jax.runs.folder import member_fields, member_stem
 
@@ -19,12 +19,14 @@ ROOT = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
 
 
-def fake_run(folder: Path, env, algo, preset, returns, sweep=(), missing=()):
+def fake_run(folder: Path, env, algo, preset, returns, sweep=(), missing=(), overrides=None):
     """A finished run whose member m ends with return ``returns[m]`` (ETR 0.1 each; on the
     Intersection, trips = return / 5 and 3 early terminations; halfway, half of it)."""
     sweep = parse_sweep(list(sweep))
     points = len(sweep[0][1]) if sweep else 1
-    cfg = resolve_config(env, algo, preset, num_seeds=len(returns) // points, sweep=sweep)
+    cfg = resolve_config(
+        env, algo, preset, num_seeds=len(returns) // points, sweep=sweep, overrides=overrides
+    )
     (folder / "eval").mkdir(parents=True)
     (folder / "config.json").write_text(json.dumps(config_document(cfg)))
     for member, value in enumerate(returns):
@@ -276,3 +278,37 @@ def test_kept_records_of_two_runs_with_one_folder_name_are_both_kept(tmp_path):
     out = tmp_path / "report"
     write_report(runs, out)
     assert sorted(p.name for p in (out / "runs").iterdir()) == ["tracking-sac", "tracking-sac-2"]
+
+
+def test_runs_of_one_protocol_from_different_base_seeds_are_pooled_into_one_row(folders, tmp_path):
+    """A protocol's seeds trained two at a time (--set seed=S, another machine, another session) are
+    one row over all of them: the IQM, curve and P(XSAC > SAC) equal those of one 4-seed run. Runs
+    that differ in what they measure, or that trained the same seeds, stay apart, and say why."""
+    pool = [fake_run(tmp_path / "first", "tracking", "sac", "quick", [10.0, 12.0],
+                     overrides={"seed": "0", "max_group_size": "1"}),
+            fake_run(tmp_path / "second", "tracking", "sac", "quick", [14.0, 16.0],
+                     overrides={"seed": "7", "checkpoint_minutes": "10"})]  # fmt: skip
+    notes = []
+    out = tmp_path / "report"
+    write_report([pool[1], pool[0], folders["xsac"]], out, note=notes.append)
+    whole = read_run(folders["sac"])  # the same four returns as one run
+    (row, _) = results_rows([read_run(folders["xsac"]), *read_runs(pool)], "tracking")
+    assert row["folder"] == "first + second" and row["seeds"] == "4/4" and row["status"] == "complete"
+    assert row["final return"] == results_rows([whole], "tracking")[0]["final return"]
+    assert notes == ["one protocol's seeds pooled into one row (first: 2 from base seed 0, second: 2 "
+                     "from base seed 7)"]  # fmt: skip
+    found = json.loads((out / "improvement.json").read_text())
+    final = next(item for item in found if item["step"] == "final")
+    assert final["estimate"] == pytest.approx(9 / 16) and final["seeds"] == [4, 4]
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["first", "second", "xsac"]
+
+    (pooled,) = read_runs(sorted((out / "runs").iterdir())[:2])  # the kept records pool again
+    assert pooled.summary["curve"] == whole.summary["curve"]
+
+    longer = fake_run(tmp_path / "longer", "tracking", "sac", "quick", [1.0, 2.0],
+                      overrides={"seed": "3", "total_steps": "160000"})  # fmt: skip
+    twin = fake_run(tmp_path / "twin", "tracking", "sac", "quick", [1.0, 2.0])  # base seed 0, as "first"
+    notes.clear()
+    runs = read_runs([pool[0], twin, longer], note=notes.append)
+    assert sorted(r.name for r in runs) == ["first", "longer", "twin"]
+    assert notes == ["first, twin ran one protocol from one base seed (the same seeds); reported separately"]

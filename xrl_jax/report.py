@@ -25,7 +25,7 @@ from xrl_jax.config import scenario
 from xrl_jax.evaluation import evaluate_yardstick
 from xrl_jax.runs.folder import RunFolderError, read_rows, read_run_config, run_paths
 from xrl_jax.runs.plots import format_step_axis, plot_sweep
-from xrl_jax.runs.summary import summarize_run, summary_metrics
+from xrl_jax.runs.summary import summarize_pooled, summarize_run, summary_metrics
 from xrl_jax.runs.tables import curve_label
 
 PAPER_RESULTS = Path(__file__).resolve().parents[1] / "docs" / "paper_results.json"
@@ -39,17 +39,29 @@ class ReportError(ValueError):
     """A folder that is not a run, or a report folder that cannot be written; the message is one line."""
 
 
+# How a run was carried out, not what it measures: runs whose settings differ only in these (their
+# base seeds differing) are one protocol, and the report pools their seeds into one row.
+EXECUTION_SETTINGS = frozenset(
+    {"seed", "num_seeds", "max_group_size", "memory_budget_gb", "checkpoint_minutes", "num_devices",
+     "checkpoint_interval"}
+)  # fmt: skip
+
+
 @dataclass(frozen=True)
 class Run:
-    """One result folder as the report sees it."""
+    """One result folder as the report sees it, or several runs of one protocol pooled (:func:`read_runs`)."""
 
-    folder: Path
-    cfg: Any
+    folders: tuple[Path, ...]
+    cfg: Any  # of the first folder; num_seeds counts the seeds of them all
     summary: dict
 
     @property
+    def name(self) -> str:
+        return " + ".join(folder.name for folder in self.folders)
+
+    @property
     def label(self) -> str:
-        return f"{self.cfg.algo} ({self.cfg.preset}, {self.folder.name})"
+        return f"{self.cfg.algo} ({self.cfg.preset}, {self.name})"
 
     @property
     def is_sweep(self) -> bool:
@@ -70,13 +82,50 @@ class Run:
 
 def read_run(folder: str | Path) -> Run:
     """A results folder's config and its summary, recomputed from the records."""
-
     folder = Path(folder)
+    cfg = _read_config(folder)
+    return Run((folder,), cfg, summarize_run(folder, cfg))
+
+
+def _read_config(folder: Path):
     try:
-        cfg = read_run_config(folder)
+        return read_run_config(folder)
     except RunFolderError as err:
         raise ReportError(str(err)) from None
-    return Run(folder, cfg, summarize_run(folder, cfg))
+
+
+def protocol(cfg) -> str:
+    """What a plain run measures: its settings without :data:`EXECUTION_SETTINGS`, as one string."""
+    settings = {k: v for k, v in cfg.to_dict().items() if k not in EXECUTION_SETTINGS}
+    return json.dumps(settings, sort_keys=True, default=str)
+
+
+def read_runs(folders: list[Path], note=None) -> list[Run]:
+    """The runs of ``folders``, with the plain runs of one :func:`protocol` pooled into one
+    (:func:`~xrl_jax.runs.summary.summarize_pooled`, in order of base seed) when each started from
+    its own base seed: a protocol's seeds trained a few at a time, in runs of ``--set seed=S``.
+    Runs of one protocol from one base seed trained the same seeds; they stay apart (``note`` takes a
+    line about it, and one about every pool)."""
+    configs = [(folder, _read_config(folder)) for folder in folders]
+    groups: dict[str, list[tuple[Path, Any]]] = {}
+    for folder, cfg in configs:
+        key = f"sweep {folder.resolve()}" if cfg.num_points > 1 else protocol(cfg)
+        groups.setdefault(key, []).append((folder, cfg))
+    runs = []
+    for parts in groups.values():
+        if len(parts) == 1 or len({cfg.seed for _, cfg in parts}) < len(parts):
+            if len(parts) > 1 and note is not None:
+                names = ", ".join(folder.name for folder, _ in parts)
+                note(f"{names} ran one protocol from one base seed (the same seeds); reported separately")
+            runs += [Run((folder,), cfg, summarize_run(folder, cfg)) for folder, cfg in parts]
+            continue
+        parts = sorted(parts, key=lambda part: part[1].seed)
+        cfg = parts[0][1].replace(num_seeds=sum(c.num_seeds for _, c in parts))
+        runs.append(Run(tuple(folder for folder, _ in parts), cfg, summarize_pooled(parts)))
+        if note is not None:
+            pooled = ", ".join(f"{folder.name}: {c.num_seeds} from base seed {c.seed}" for folder, c in parts)
+            note(f"one protocol's seeds pooled into one row ({pooled})")
+    return runs
 
 
 def paper_values() -> dict[tuple[str, str, str], dict]:
@@ -113,13 +162,13 @@ def results_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
     metrics = table_metrics(env)
     rows = []
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
-    for run in sorted(plain, key=lambda r: (ALGO_ORDER.index(r.cfg.algo), r.cfg.preset, r.folder.name)):
+    for run in sorted(plain, key=lambda r: (ALGO_ORDER.index(r.cfg.algo), r.cfg.preset, r.name)):
         row = {
             "agent": run.cfg.algo,
             "preset": run.cfg.preset,
             "steps": f"{run.cfg.total_steps:,}",
             "seeds": f"{len(run.summary['seeds'])}/{run.cfg.num_seeds}",
-            "folder": run.folder.name,
+            "folder": run.name,
         }
         for key, label in metrics:
             row[label] = _cell(run.summary["aggregate"].get(key))
@@ -341,7 +390,7 @@ def write_report(
     controller = controller or controller_speed is not None
     out = Path(out)
     _make_report_folder(out)
-    runs = [read_run(folder) for folder in distinct_folders(folders, note)]
+    runs = read_runs(distinct_folders(folders, note), note)
     try:
         keep_records(runs, out)
         return _write_report(runs, out, controller_speed, controller, early_fraction)
@@ -371,13 +420,13 @@ def keep_records(runs: list[Run], out: Path) -> list[Path]:
     for leftover in (staging, former):  # of a report that was stopped half-way
         shutil.rmtree(leftover, ignore_errors=True)
     names: list[str] = []
-    for run in runs:
-        name, index = run.folder.name, 1
+    for folder in (folder for run in runs for folder in run.folders):  # a pool: each of its runs
+        name, index = folder.name, 1
         while name in names:
             index += 1
-            name = f"{run.folder.name}-{index}"
+            name = f"{folder.name}-{index}"
         names.append(name)
-        source, copy = run_paths(run.folder), run_paths(staging / name)
+        source, copy = run_paths(folder), run_paths(staging / name)
         copy["eval"].mkdir(parents=True)
         shutil.copyfile(source["config"], copy["config"])
         for lines in sorted(source["eval"].glob("*.jsonl")):
@@ -441,7 +490,7 @@ def _write_report(
         finished = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["aggregate"]]
         for run in (r for r in runs if r.cfg.env == env and r.is_sweep):
             baseline = next((b for b in finished if b.cfg.algo == BASELINES.get(run.cfg.algo)), None)
-            path = out / f"sweep_{run.folder.name}.png"
+            path = out / f"sweep_{run.name}.png"
             if run.summary["sweep"]["points"] and any(p["aggregate"] for p in run.summary["sweep"]["points"]):
                 plot_sweep(run.summary, path, baseline.summary if baseline else None)
                 lines += ["", f"Sweep {run.label}: {run.status()}", "", f"![sweep]({path.name})"]

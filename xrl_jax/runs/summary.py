@@ -101,14 +101,7 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
     final = cfg.total_steps
     summary: dict[str, Any] = {"env": cfg.env, "algo": cfg.algo, "preset": cfg.preset, "steps": final}
     if cfg.num_points == 1:
-        finals = {seed: rows[final] for seed, rows in enumerate(evaluations) if final in rows}
-        summary |= {
-            "seeds": sorted(finals),
-            "complete": len(finals) == cfg.num_seeds,
-            "per_seed": {str(s): _per_seed_row(r, drop=_SWEEP_RECORD_FIELDS) for s, r in finals.items()},
-            "aggregate": aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
-            "curve": _curve(evaluations, cfg.env),
-        }
+        summary |= _over_seeds(evaluations, cfg)
     else:
         finished = [m for m, rows in enumerate(evaluations) if final in rows]
         points = []
@@ -134,6 +127,32 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
     if cfg.on_tracks:
         summary["training_tracks"] = _training_tracks(out, cfg)
     return summary
+
+
+def summarize_pooled(parts: list[tuple[str | Path, Any]]) -> dict[str, Any]:
+    """Plain runs ``(folder, cfg)`` of one protocol, each trained from its own base seed (say one
+    session's seeds and the next's), summarised as one run over all their seeds, as
+    :func:`summarize_run` would summarise one run of them all: seed ``k`` of the pool is the ``k``-th
+    seed in the order given. Which seeds trained on which tracks (``training_tracks``) is left out."""
+    if any(cfg.num_points > 1 for _, cfg in parts):
+        raise ValueError("a sweep is summarised per point and never pooled with another run")
+    evaluations = [rows for out, cfg in parts for rows in _member_evaluations(Path(out), cfg)]
+    cfg = parts[0][1].replace(num_seeds=len(evaluations))
+    summary = {"env": cfg.env, "algo": cfg.algo, "preset": cfg.preset, "steps": cfg.total_steps}
+    return summary | _over_seeds(evaluations, cfg)
+
+
+def _over_seeds(evaluations: list[dict[int, dict]], cfg) -> dict[str, Any]:
+    """The plain run's part of the summary: each seed's final evaluation, their aggregate, the curve."""
+    final = cfg.total_steps
+    finals = {seed: rows[final] for seed, rows in enumerate(evaluations) if final in rows}
+    return {
+        "seeds": sorted(finals),
+        "complete": len(finals) == cfg.num_seeds,
+        "per_seed": {str(s): _per_seed_row(r, drop=_SWEEP_RECORD_FIELDS) for s, r in finals.items()},
+        "aggregate": aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
+        "curve": _curve(evaluations, cfg.env),
+    }
 
 
 def _per_seed_row(row: dict, drop: tuple[str, ...] = ()) -> dict:
