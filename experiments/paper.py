@@ -18,6 +18,7 @@ and the device-hours they take at a stated throughput.
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from pathlib import Path
 
@@ -84,7 +85,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def continue_command(argv: list[str]) -> str:
+    """The command that continues a stopped campaign: this one again, with its preset, seeds and
+    --only (a bare --out would go on with the whole paper at its default preset); shell-quoted."""
+    return shlex.join(["python", "experiments/paper.py", *argv])
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
     if not 0.0 < args.utilisation <= 1.0:
         return fail(PROG, f"--utilisation must be in (0, 1], got {args.utilisation}")
@@ -108,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         run_one=run_cli.main,
         say=lambda message: print(f"{PROG}: {message}", file=sys.stderr),
         show=print,
-        again=f"python experiments/paper.py --out {out}",
+        again=continue_command(argv),
     )
 
 

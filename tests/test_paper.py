@@ -2,6 +2,7 @@
 The whole campaign at the smoke preset is a slow test (15 runs)."""
 
 import json
+import shlex
 import shutil
 
 import pytest
@@ -66,6 +67,14 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     status, _, err = call(paper, capsys, *args)
     assert status == 1 and "the runs are kept, but the report failed" in err and "is a file" in err
     assert "Traceback" not in err and (out / "tracking-dsac" / "summary.json").is_file()
+
+
+def test_a_stopped_campaign_is_continued_by_its_own_command(paper):
+    """The command printed on a stop repeats every option: a bare --out would continue with the
+    whole paper at the paper preset instead of, say, four quick Tracking runs."""
+    argv = ["--out", "results/my runs", "--preset", "quick", "--seeds", "4", "--only", "tracking-*"]
+    again = paper.continue_command(argv)
+    assert again.startswith("python experiments/paper.py ") and shlex.split(again)[2:] == argv
 
 
 def test_bad_input_fails_in_one_line(paper, capsys, tmp_path):
