@@ -330,3 +330,11 @@ def test_a_resume_says_what_it_could_not_verify_or_find(tmp_path):
         and "has no checkpoint" in warnings[0]
         and "starts again from step 0" in warnings[0]
     )
+    # Seeds one after another: a group that had not started when the run stopped has no checkpoint
+    # either, and nothing was lost; the resume says so in its log, without a warning.
+    one_by_one = cfg.replace(max_group_size=1)
+    logged, warnings[:] = [], []
+    quiet |= {"log": logged.append, "trainer": T.make_train(one_by_one)}
+    assert T.train(one_by_one, tmp_path / "one_by_one", stop_after_chunks=1, **quiet) is None
+    assert T.train(one_by_one, tmp_path / "one_by_one", resume=True, **quiet)["complete"]
+    assert warnings == [] and "member group 2 of 2 had not started; it starts now" in logged
