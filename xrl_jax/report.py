@@ -13,7 +13,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,28 +22,19 @@ import numpy as np
 from xrl_jax import stats
 from xrl_jax.config import scenario
 from xrl_jax.evaluation import evaluate_yardstick
-from xrl_jax.runs.folder import RunFolderError, read_rows, read_run_config, run_paths
+from xrl_jax.runs.folder import RunFolderError, read_run_config
+from xrl_jax.runs.kept import keep_records, protocol_groups
 from xrl_jax.runs.plots import format_step_axis, plot_sweep
 from xrl_jax.runs.summary import summarize_pooled, summarize_run, summary_metrics
 from xrl_jax.runs.tables import curve_label
 
 PAPER_RESULTS = Path(__file__).resolve().parents[1] / "docs" / "paper_results.json"
-RECORDS = "runs"  # the report's copy of the records of every run it reports
-RECORD_DROPS = ("episode_returns",)  # per-episode values: the bulk of an evaluation row, unused here
 BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
 ALGO_ORDER = ("sac", "xsac", "dsac", "xdsac")
 
 
 class ReportError(ValueError):
     """A folder that is not a run, or a report folder that cannot be written; the message is one line."""
-
-
-# How a run was carried out, not what it measures: runs whose settings differ only in these (their
-# base seeds differing) are one protocol, and the report pools their seeds into one row.
-EXECUTION_SETTINGS = frozenset(
-    {"seed", "num_seeds", "max_group_size", "memory_budget_gb", "checkpoint_minutes", "num_devices",
-     "checkpoint_interval"}
-)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -94,37 +84,18 @@ def _read_config(folder: Path):
         raise ReportError(str(err)) from None
 
 
-def protocol(cfg) -> str:
-    """What a plain run measures: its settings without :data:`EXECUTION_SETTINGS`, as one string."""
-    settings = {k: v for k, v in cfg.to_dict().items() if k not in EXECUTION_SETTINGS}
-    return json.dumps(settings, sort_keys=True, default=str)
-
-
 def read_runs(folders: list[Path], note=None) -> list[Run]:
-    """The runs of ``folders``, with the plain runs of one :func:`protocol` pooled into one
-    (:func:`~xrl_jax.runs.summary.summarize_pooled`, in order of base seed) when each started from
-    its own base seed: a protocol's seeds trained a few at a time, in runs of ``--set seed=S``.
-    Runs of one protocol from one base seed trained the same seeds; they stay apart (``note`` takes a
-    line about it, and one about every pool)."""
-    configs = [(folder, _read_config(folder)) for folder in folders]
-    groups: dict[str, list[tuple[Path, Any]]] = {}
-    for folder, cfg in configs:
-        key = f"sweep {folder.resolve()}" if cfg.num_points > 1 else protocol(cfg)
-        groups.setdefault(key, []).append((folder, cfg))
+    """The runs of ``folders``, with the plain runs of one protocol that each started from their own
+    base seed pooled into one (:func:`~xrl_jax.runs.kept.protocol_groups`,
+    :func:`~xrl_jax.runs.summary.summarize_pooled`); ``note`` takes a line about every pool."""
     runs = []
-    for parts in groups.values():
-        if len(parts) == 1 or len({cfg.seed for _, cfg in parts}) < len(parts):
-            if len(parts) > 1 and note is not None:
-                names = ", ".join(folder.name for folder, _ in parts)
-                note(f"{names} ran one protocol from one base seed (the same seeds); reported separately")
-            runs += [Run((folder,), cfg, summarize_run(folder, cfg)) for folder, cfg in parts]
-            continue
-        parts = sorted(parts, key=lambda part: part[1].seed)
-        cfg = parts[0][1].replace(num_seeds=sum(c.num_seeds for _, c in parts))
-        runs.append(Run(tuple(folder for folder, _ in parts), cfg, summarize_pooled(parts)))
-        if note is not None:
-            pooled = ", ".join(f"{folder.name}: {c.num_seeds} from base seed {c.seed}" for folder, c in parts)
-            note(f"one protocol's seeds pooled into one row ({pooled})")
+    for parts in protocol_groups([(folder, _read_config(folder)) for folder in folders], note):
+        if len(parts) == 1:
+            ((folder, cfg),) = parts
+            runs.append(Run((folder,), cfg, summarize_run(folder, cfg)))
+        else:
+            cfg = parts[0][1].replace(num_seeds=sum(c.num_seeds for _, c in parts))
+            runs.append(Run(tuple(folder for folder, _ in parts), cfg, summarize_pooled(parts)))
     return runs
 
 
@@ -378,10 +349,10 @@ def write_report(
     early_fraction: float = EARLY_FRACTION,
     note=None,
 ) -> Path:
-    """Read ``folders`` and write ``out``/report.md with the tables (``results_<env>.md/.csv``),
-    figures (``<env>.png``, ``sweep_<folder>.png``) and improvement probabilities
-    (``improvement.json``, at the end and at the evaluation nearest ``early_fraction`` of the run),
-    and the records it read (``runs/``, :func:`keep_records`); returns the path of report.md. With
+    """Read ``folders`` and write ``out``/report.md with the tables (``results_<env>.md/.csv``), figures
+    (``<env>.png``, ``sweep_<folder>.png``) and improvement probabilities (``improvement.json``, at
+    the end and at the evaluation nearest ``early_fraction`` of the run), and the records it read
+    (``runs/``, :func:`~xrl_jax.runs.kept.keep_records`); returns the path of report.md. With
     ``controller`` or a ``controller_speed`` (m/s; None: each driver's default), the tables and
     figures also show each scenario's yardstick driven on the runs' evaluation (``controller.json``):
     the hand controller on the racing tracks, the scripted driver on the Intersection. A folder given
@@ -392,7 +363,7 @@ def write_report(
     _make_report_folder(out)
     runs = read_runs(distinct_folders(folders, note), note)
     try:
-        keep_records(runs, out)
+        keep_records([folder for run in runs for folder in run.folders], out)
         return _write_report(runs, out, controller_speed, controller, early_fraction)
     except OSError as err:  # a folder that turned unwritable, a full disk
         raise ReportError(f"cannot write the report into {out}: {err.strerror or err}") from None
@@ -405,38 +376,6 @@ def _make_report_folder(out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ReportError(f"cannot create the report folder --out {out}: {err.strerror or err}") from None
-
-
-def keep_records(runs: list[Run], out: Path) -> list[Path]:
-    """Copy what the report reads of each run into ``out/runs/<folder name>``: its ``config.json`` and
-    its evaluation lines without their per-episode values. ``report.py out/runs/* NEW_RUN --out out``
-    then writes the report again with a run added, after the run folders are gone (a user's clone,
-    another machine). The copies replace the folder's earlier ones as a whole, so it holds exactly the
-    runs of this report; given as sources themselves, they are read before they are replaced. Runs
-    whose folders share a name are kept as ``<name>``, ``<name>-2``, ...; returns the copies' paths."""
-    staging, kept, former = out / f".{RECORDS}.new", out / RECORDS, out / f".{RECORDS}.old"
-    if former.exists() and not kept.exists():  # a report stopped between the two renames below
-        former.rename(kept)
-    for leftover in (staging, former):  # of a report that was stopped half-way
-        shutil.rmtree(leftover, ignore_errors=True)
-    names: list[str] = []
-    for folder in (folder for run in runs for folder in run.folders):  # a pool: each of its runs
-        name, index = folder.name, 1
-        while name in names:
-            index += 1
-            name = f"{folder.name}-{index}"
-        names.append(name)
-        source, copy = run_paths(folder), run_paths(staging / name)
-        copy["eval"].mkdir(parents=True)
-        shutil.copyfile(source["config"], copy["config"])
-        for lines in sorted(source["eval"].glob("*.jsonl")):
-            rows = [{k: v for k, v in row.items() if k not in RECORD_DROPS} for row in read_rows(lines)]
-            (copy["eval"] / lines.name).write_text("".join(json.dumps(row) + "\n" for row in rows))
-    if kept.exists():  # swapped, never deleted first: the old copies may be this report's sources
-        kept.rename(former)
-    staging.rename(kept)
-    shutil.rmtree(former, ignore_errors=True)
-    return [kept / name for name in names]
 
 
 def distinct_folders(folders: list[str | Path], note=None) -> list[Path]:

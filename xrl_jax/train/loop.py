@@ -251,10 +251,6 @@ class _HostLoop:
         stem = member_stem(self.cfg, member)
         return self.paths["metrics"] / f"{stem}.jsonl", self.paths["eval"] / f"{stem}.jsonl"
 
-    def _has_records(self, members: list[int]) -> bool:
-        """Whether any of ``members`` wrote a metrics or evaluation line: its group had started."""
-        return any(path.is_file() and path.stat().st_size > 0 for m in members for path in self._files(m))
-
     def _run_group(self, group_index: int, members: list[int], resume: bool) -> None:
         """Train one group: its members padded to a multiple of the device count (rows), of which
         this process writes the rows its devices hold (``self.rows``)."""
@@ -297,7 +293,8 @@ class _HostLoop:
         A resume that finds none says so: the group starts again from step 0."""
         if not resume:
             return None, 0
-        if ckpt.latest_step() is None and not self._has_records(members):  # groups run one by one
+        started = any(path.is_file() and path.stat().st_size > 0 for m in members for path in self._files(m))
+        if ckpt.latest_step() is None and not started:  # groups run one after another
             self.log(f"member group {group_index + 1} of {len(self.groups)} had not started; it starts now")
             return None, 0
         if ckpt.latest_step() is None:

@@ -1,0 +1,89 @@
+"""What a report keeps of its runs, and which runs are one protocol.
+
+A report copies the records it reads (``config.json``, ``eval/``) into ``runs/`` beside it, so that it
+can be written again, or with a run added, after the run folders are gone; and it pools runs that
+differ only in how they were carried out, each from its own base seed, into one row.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from xrl_jax.runs.folder import read_rows, run_paths
+
+RECORDS = "runs"  # the report's copy of the records of every run it reports
+RECORD_DROPS = ("episode_returns",)  # per-episode values: the bulk of an evaluation row, unused there
+
+# How a run was carried out, not what it measures: runs whose settings differ only in these (their
+# base seeds differing) are one protocol, and the report pools their seeds into one row.
+EXECUTION_SETTINGS = frozenset(
+    {"seed", "num_seeds", "max_group_size", "memory_budget_gb", "checkpoint_minutes", "num_devices",
+     "checkpoint_interval"}
+)  # fmt: skip
+
+
+def protocol(cfg) -> str:
+    """What a plain run measures: its settings without :data:`EXECUTION_SETTINGS`, as one string."""
+    settings = {k: v for k, v in cfg.to_dict().items() if k not in EXECUTION_SETTINGS}
+    return json.dumps(settings, sort_keys=True, default=str)
+
+
+def protocol_groups(configs: list[tuple[Path, Any]], note=None) -> list[list[tuple[Path, Any]]]:
+    """``(folder, cfg)`` of every run, grouped: the plain runs of one :func:`protocol` whose base seeds
+    all differ are one group, in order of base seed (a protocol's seeds trained a few at a time, in
+    runs of ``--set seed=S``); every other run is a group of its own. Runs of one protocol from one
+    base seed trained the same seeds, so they stay apart; ``note`` takes a line about that and about
+    every pool."""
+    groups: dict[str, list[tuple[Path, Any]]] = {}
+    for folder, cfg in configs:
+        key = f"sweep {folder.resolve()}" if cfg.num_points > 1 else protocol(cfg)
+        groups.setdefault(key, []).append((folder, cfg))
+    out = []
+    for parts in groups.values():
+        if len(parts) == 1 or len({cfg.seed for _, cfg in parts}) < len(parts):
+            if len(parts) > 1 and note is not None:
+                names = ", ".join(folder.name for folder, _ in parts)
+                note(f"{names} ran one protocol from one base seed (the same seeds); reported separately")
+            out += [[part] for part in parts]
+            continue
+        out.append(sorted(parts, key=lambda part: part[1].seed))
+        if note is not None:
+            pooled = ", ".join(f"{f.name}: {c.num_seeds} from base seed {c.seed}" for f, c in out[-1])
+            note(f"one protocol's seeds pooled into one row ({pooled})")
+    return out
+
+
+def keep_records(folders: list[Path], out: Path) -> list[Path]:
+    """Copy what the report reads of each run folder into ``out/runs/<folder name>``: its ``config.json``
+    and its evaluation lines without their per-episode values. ``report.py out/runs/* NEW_RUN --out
+    out`` then writes the report again with a run added, after the run folders are gone (a user's
+    clone, another machine). The copies replace the folder's earlier ones as a whole, so it holds
+    exactly the runs of this report; given as sources themselves, they are read before they are
+    replaced. Runs whose folders share a name are kept as ``<name>``, ``<name>-2``, ...; returns the
+    copies' paths."""
+    staging, kept, former = out / f".{RECORDS}.new", out / RECORDS, out / f".{RECORDS}.old"
+    if former.exists() and not kept.exists():  # a report stopped between the two renames below
+        former.rename(kept)
+    for leftover in (staging, former):  # of a report that was stopped half-way
+        shutil.rmtree(leftover, ignore_errors=True)
+    names: list[str] = []
+    for folder in folders:
+        name, index = folder.name, 1
+        while name in names:
+            index += 1
+            name = f"{folder.name}-{index}"
+        names.append(name)
+        source, copy = run_paths(folder), run_paths(staging / name)
+        copy["eval"].mkdir(parents=True)
+        shutil.copyfile(source["config"], copy["config"])
+        for lines in sorted(source["eval"].glob("*.jsonl")):
+            rows = [{k: v for k, v in row.items() if k not in RECORD_DROPS} for row in read_rows(lines)]
+            (copy["eval"] / lines.name).write_text("".join(json.dumps(row) + "\n" for row in rows))
+    if kept.exists():  # swapped, never deleted first: the old copies may be this report's sources
+        kept.rename(former)
+    staging.rename(kept)
+    shutil.rmtree(former, ignore_errors=True)
+    return [kept / name for name in names]
