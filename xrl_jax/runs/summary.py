@@ -99,7 +99,7 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
     evaluations = _member_evaluations(out, cfg)
     stems = _member_stems(cfg)
     final = cfg.total_steps
-    summary: dict[str, Any] = {"env": cfg.env, "algo": cfg.algo, "preset": cfg.preset, "steps": final}
+    summary = _header(cfg)
     if cfg.num_points == 1:
         summary |= _over_seeds(evaluations, cfg)
     else:
@@ -138,8 +138,11 @@ def summarize_pooled(parts: list[tuple[str | Path, Any]]) -> dict[str, Any]:
         raise ValueError("a sweep is summarised per point and never pooled with another run")
     evaluations = [rows for out, cfg in parts for rows in _member_evaluations(Path(out), cfg)]
     cfg = parts[0][1].replace(num_seeds=len(evaluations))
-    summary = {"env": cfg.env, "algo": cfg.algo, "preset": cfg.preset, "steps": cfg.total_steps}
-    return summary | _over_seeds(evaluations, cfg)
+    return _header(cfg) | _over_seeds(evaluations, cfg)
+
+
+def _header(cfg) -> dict[str, Any]:
+    return {"env": cfg.env, "algo": cfg.algo, "preset": cfg.preset, "steps": cfg.total_steps}
 
 
 def _over_seeds(evaluations: list[dict[int, dict]], cfg) -> dict[str, Any]:

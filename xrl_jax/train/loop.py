@@ -293,13 +293,13 @@ class _HostLoop:
         A resume that finds none says so: the group starts again from step 0."""
         if not resume:
             return None, 0
-        started = any(path.is_file() and path.stat().st_size > 0 for m in members for path in self._files(m))
-        if ckpt.latest_step() is None and not started:  # groups run one after another
-            self.log(f"member group {group_index + 1} of {len(self.groups)} had not started; it starts now")
-            return None, 0
         if ckpt.latest_step() is None:
+            group = f"member group {group_index + 1} of {len(self.groups)}"
+            if not any(path.is_file() and path.stat().st_size for m in members for path in self._files(m)):
+                self.log(f"{group} had not started; it starts now")  # groups run one after another
+                return None, 0
             self.warn(
-                f"--resume: member group {group_index + 1} of {len(self.groups)} has no checkpoint in "
+                f"--resume: {group} has no checkpoint in "
                 f"{ckpt.directory} (deleted, or every one was damaged and set aside in "
                 f"{ckpt.directory.name}.rejected); it starts again from step 0"
             )
