@@ -1,7 +1,7 @@
 """Evaluate a finished run's agents again, on its training tracks or on its held-out tracks.
 
     python experiments/evaluate.py RESULTS_DIR [--tracks train|eval] [--episodes N] [--key K]
-                                   [--mode eval|deterministic]
+                                   [--mode eval|deterministic|stochastic]
 
 Every seed's agent (every member's, in a sweep) is restored from the run's newest checkpoint and
 driven with the run's evaluation
@@ -9,8 +9,9 @@ protocol (docs/algorithms.md §6.1) over the first N tracks of the chosen set, o
 ``train`` is the fixed training bank of a run with ``train_tracks`` > 0 (the gap to ``eval`` is the
 generalisation gap), ``eval`` the run's held-out evaluation tracks. Prints each seed's average return
 and early-termination rate and their IQM with its 95 % stratified bootstrap CI over seeds, and
-writes the same to ``RESULTS_DIR/evaluation_<tracks>.json`` (``evaluation_<tracks>_deterministic.json``
-with ``--mode deterministic``, which drives XSAC greedily too).
+writes the same to ``RESULTS_DIR/evaluation_<tracks>.json`` (``evaluation_<tracks>_<mode>.json``
+for the diagnostic modes: ``deterministic`` drives every agent greedily, XSAC too; ``stochastic``
+samples every agent's policy, so a greedy agent's near-ties between actions no longer decide).
 """
 
 from __future__ import annotations
@@ -39,11 +40,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--mode",
-        choices=("eval", "deterministic"),
+        choices=("eval", "deterministic", "stochastic"),  # xrl_jax.agents.EVAL_MODES: not imported for --help
         default="eval",
         help="eval: each agent's evaluation policy as in the reference (XSAC samples, the others are "
         "greedy; default); deterministic: greedy for every agent, XSAC at the approximate mode of its "
-        "mixture (docs/algorithms.md §3.9), a diagnostic outside the paper's protocol",
+        "mixture (docs/algorithms.md §3.9); stochastic: a sample of every agent's policy, without "
+        "exploration; both are diagnostics outside the paper's protocol",
     )
     return parser
 

@@ -523,6 +523,29 @@ def test_discrete_exploration_epsilon():
     np.testing.assert_array_equal(greedy, mode)
 
 
+@pytest.mark.parametrize("algo", ["dsac", pytest.param("xdsac", marks=pytest.mark.slow)])
+def test_stochastic_mode_samples_the_policy_without_exploration(algo):
+    # ε = 1 would make every "train" action uniform; "stochastic" must ignore it and follow π(a|s).
+    agent = make_agent(tiny_config(algo, epsilon_random=1.0), EXAMPLE, NUM_ACTIONS[algo])
+    state = agent.init(jax.random.PRNGKey(29))
+    one_obs = make_batch(jax.random.PRNGKey(30), algo, batch=1)["obs"]
+    draws = 20_000
+    obs = jax.tree_util.tree_map(lambda x: jnp.repeat(x, draws, axis=0), one_obs)
+
+    @jax.jit
+    def run(state, obs):
+        sampled = agent.act(jax.random.PRNGKey(3), state, obs, "stochastic")
+        return sampled, agent.policy(state.actor_params, one_obs).probs()[0]
+
+    sampled, probs = run(state, obs)
+    frequencies = np.bincount(np.asarray(sampled), minlength=NUM_ACTIONS[algo]) / draws
+    # Each frequency is a mean of `draws` Bernoulli(p) draws: 5 standard errors (plus float32
+    # rounding of p) bound it for any key with probability > 1 - 1e-5 per action.
+    bound = 5 * np.sqrt(np.asarray(probs) * (1 - np.asarray(probs)) / draws) + 1e-6
+    assert np.all(np.abs(frequencies - np.asarray(probs)) <= bound), (frequencies, probs)
+    assert np.ptp(np.asarray(probs)) > 0.01  # the policy is not uniform, so ε = 1 would fail the check
+
+
 def test_batch_layout_errors_are_clear():
     agent = make_agent(tiny_config("sac"), EXAMPLE, 2)
     state = agent.init(jax.random.PRNGKey(0))

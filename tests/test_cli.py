@@ -159,6 +159,14 @@ def test_evaluate_cli_drives_a_bank_runs_agents_on_its_training_and_held_out_tra
     assert json.loads((smoke_run / "evaluation_train.json").read_text())["episodes"] == 2
 
 
+def test_evaluate_cli_offers_every_evaluation_mode(evaluate_cli):
+    # The CLI lists the modes itself (no xrl_jax import for --help); they must be the agents' own.
+    from xrl_jax.agents import EVAL_MODES
+
+    mode = next(action for action in evaluate_cli.build_parser()._actions if action.dest == "mode")
+    assert tuple(mode.choices) == EVAL_MODES and mode.default == "eval"
+
+
 def test_evaluate_cli_refuses_what_it_cannot_measure(evaluate_cli, smoke_run, capsys, tmp_path):
     status, _, err = call(evaluate_cli, capsys, str(smoke_run), "--tracks", "train", "--episodes", "4")
     one_line_error(status, err, "--episodes 4", "only 3")

@@ -4,7 +4,8 @@ An :class:`Agent` is a small frozen object (static: config, networks, sizes) wit
 methods, all jittable and vmappable over a leading seed axis of the state:
 
 * ``init(key, obs_example=None) -> AgentState``
-* ``act(key, state, obs, mode="train") -> action`` (``mode`` is static: "train", "eval", "deterministic")
+* ``act(key, state, obs, mode="train") -> action`` (``mode``, static: one of
+  ``ACT_MODES``)
 * ``update(key, state, batch) -> (state, metrics)``: one train step in the order of docs/algorithms.md §1.5
 * ``policy(actor_params, obs)``: the action distribution (a ``distributions`` mixture), i.e. the
   explanation for the X agents.
@@ -67,7 +68,8 @@ from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture
 from xrl_jax.networks import Networks, ObservationShape, find_set_key, make_networks, set_packing
 
 Array = jax.Array
-ACT_MODES = ("train", "eval", "deterministic")
+EVAL_MODES = ("eval", "deterministic", "stochastic")  # an evaluation acts in one of these: no ε
+ACT_MODES = ("train", *EVAL_MODES)
 BATCH_KEYS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
 
 
@@ -215,6 +217,8 @@ class Agent:
           **stochastic** fast sample (§7.2.5), XDSAC argmax of the mixture probabilities.
         * "deterministic": greedy for every agent (XSAC: the approximate mode of §3.9, not what
           the paper's numbers used).
+        * "stochastic": a sample of the policy for every agent, without ε (a diagnostic: shows how
+          much of a greedy agent's evaluation hangs on near-ties between actions).
         """
         if mode not in ACT_MODES:
             raise ValueError(f"unknown act mode {mode!r}; valid modes: {', '.join(ACT_MODES)}")
@@ -404,6 +408,7 @@ def make_agent(
 __all__ = [
     "ACT_MODES",
     "BATCH_KEYS",
+    "EVAL_MODES",
     "Agent",
     "AgentState",
     "HyperParams",

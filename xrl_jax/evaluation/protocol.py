@@ -16,6 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from xrl_jax.agents import EVAL_MODES
+
 EARLY_TERMINATION_REWARD = -0.5
 EPISODE_FIELDS = ("return", "length", "terminated", "truncated", "last_reward", "track_velocity", "cones_hit")
 
@@ -24,11 +26,12 @@ def make_evaluate(env, eval_params, agent, num_episodes: int, mode: str = "eval"
     """``evaluate(key, agent_state) -> per-episode arrays`` (each ``(num_episodes,)``), jittable.
 
     ``eval_params`` holds a bank of at least ``num_episodes`` tracks; episode ``i`` uses track ``i``.
-    ``mode`` is the agent's acting mode: "eval" (the reference's, §3.8) or "deterministic" (greedy
-    for every agent, XSAC included: a diagnostic, not the paper's protocol).
+    ``mode`` is the agent's acting mode: "eval" (the reference's, §3.8), or one of the diagnostics
+    outside the paper's protocol, "deterministic" (greedy for every agent, XSAC included) and
+    "stochastic" (a policy sample for every agent).
     """
-    if mode not in ("eval", "deterministic"):
-        raise ValueError(f"an evaluation acts in mode 'eval' or 'deterministic', not {mode!r}")
+    if mode not in EVAL_MODES:
+        raise ValueError(f"an evaluation acts in one of the modes {', '.join(EVAL_MODES)}, not {mode!r}")
 
     def policy(key, agent_state, obs, env_states, per_episode):
         del env_states, per_episode  # an agent sees only its observation

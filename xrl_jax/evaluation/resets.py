@@ -9,6 +9,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from xrl_jax.agents import EVAL_MODES
+
 
 def reset_episode_keys(seed: int, num_episodes: int) -> tuple[jax.Array, jax.Array]:
     """``(reset_keys, stream_keys)``, each ``(num_episodes, key)``: episode ``i``'s reset key and the
@@ -24,8 +26,8 @@ def make_evaluate_resets(
     """``evaluate(key, agent_state) -> per-episode arrays`` (return, length, terminated, truncated,
     last_reward; each ``(num_episodes,)``), jittable; ``key`` drives only the policy's own sampling
     (XSAC acts stochastically in its evaluation mode, docs/algorithms.md §3.8)."""
-    if mode not in ("eval", "deterministic"):
-        raise ValueError(f"an evaluation acts in mode 'eval' or 'deterministic', not {mode!r}")
+    if mode not in EVAL_MODES:
+        raise ValueError(f"an evaluation acts in one of the modes {', '.join(EVAL_MODES)}, not {mode!r}")
     if int(max_steps) < 1 or int(num_episodes) < 1:
         raise ValueError(f"max_steps ({max_steps}) and num_episodes ({num_episodes}) must be positive")
     reset_keys, stream_keys = reset_episode_keys(seed, num_episodes)

@@ -21,7 +21,6 @@ from xrl_jax.sets import MEMBERS_AXIS
 from xrl_jax.train.restore import load_trained_agents
 
 TRACK_SETS = ("train", "eval")  # the run's fixed training bank, its held-out evaluation tracks
-MODES = ("eval", "deterministic")  # the protocol's own policies, or greedy for every agent
 
 
 def evaluate_run(
