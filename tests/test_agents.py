@@ -537,13 +537,13 @@ def test_stochastic_mode_samples_the_policy_without_exploration(algo):
         sampled = agent.act(jax.random.PRNGKey(3), state, obs, "stochastic")
         return sampled, agent.policy(state.actor_params, one_obs).probs()[0]
 
-    sampled, probs = run(state, obs)
-    frequencies = np.bincount(np.asarray(sampled), minlength=NUM_ACTIONS[algo]) / draws
+    sampled, probs = jax.device_get(run(state, obs))
+    frequencies = np.bincount(sampled, minlength=NUM_ACTIONS[algo]) / draws
     # Each frequency is a mean of `draws` Bernoulli(p) draws: 5 standard errors (plus float32
     # rounding of p) bound it for any key with probability > 1 - 1e-5 per action.
-    bound = 5 * np.sqrt(np.asarray(probs) * (1 - np.asarray(probs)) / draws) + 1e-6
-    assert np.all(np.abs(frequencies - np.asarray(probs)) <= bound), (frequencies, probs)
-    assert np.ptp(np.asarray(probs)) > 0.01  # the policy is not uniform, so ε = 1 would fail the check
+    bound = 5 * np.sqrt(probs * (1 - probs) / draws) + 1e-6
+    assert np.all(np.abs(frequencies - probs) <= bound), (frequencies, probs)
+    assert np.ptp(probs) > 0.01  # the policy is not uniform, so ε = 1 would fail the check
 
 
 def test_batch_layout_errors_are_clear():

@@ -73,6 +73,13 @@ ACT_MODES = ("train", *EVAL_MODES)
 BATCH_KEYS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
 
 
+def check_eval_mode(mode: str) -> None:
+    """Raise ValueError unless ``mode`` is one of :data:`EVAL_MODES`: an evaluation is refused when it
+    is built, not later inside a trace."""
+    if mode not in EVAL_MODES:
+        raise ValueError(f"an evaluation acts in one of the modes {', '.join(EVAL_MODES)}, not {mode!r}")
+
+
 def observation_shape(obs_example: Mapping[str, Any]) -> ObservationShape:
     """Read the fixed layout of one *unbatched* observation {"state": (S,), "<x>_set": (O, F)}."""
     set_key = find_set_key(obs_example)
@@ -412,6 +419,7 @@ __all__ = [
     "Agent",
     "AgentState",
     "HyperParams",
+    "check_eval_mode",
     "make_agent",
     "make_hparams",
     "observation_shape",

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from xrl_jax.agents import EVAL_MODES
+from xrl_jax.agents import check_eval_mode
 
 EARLY_TERMINATION_REWARD = -0.5
 EPISODE_FIELDS = ("return", "length", "terminated", "truncated", "last_reward", "track_velocity", "cones_hit")
@@ -30,8 +30,7 @@ def make_evaluate(env, eval_params, agent, num_episodes: int, mode: str = "eval"
     outside the paper's protocol, "deterministic" (greedy for every agent, XSAC included) and
     "stochastic" (a policy sample for every agent).
     """
-    if mode not in EVAL_MODES:
-        raise ValueError(f"an evaluation acts in one of the modes {', '.join(EVAL_MODES)}, not {mode!r}")
+    check_eval_mode(mode)
 
     def policy(key, agent_state, obs, env_states, per_episode):
         del env_states, per_episode  # an agent sees only its observation

@@ -9,7 +9,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from xrl_jax.agents import EVAL_MODES
+from xrl_jax.agents import check_eval_mode
 
 
 def reset_episode_keys(seed: int, num_episodes: int) -> tuple[jax.Array, jax.Array]:
@@ -26,8 +26,7 @@ def make_evaluate_resets(
     """``evaluate(key, agent_state) -> per-episode arrays`` (return, length, terminated, truncated,
     last_reward; each ``(num_episodes,)``), jittable; ``key`` drives only the policy's own sampling
     (XSAC acts stochastically in its evaluation mode, docs/algorithms.md §3.8)."""
-    if mode not in EVAL_MODES:
-        raise ValueError(f"an evaluation acts in one of the modes {', '.join(EVAL_MODES)}, not {mode!r}")
+    check_eval_mode(mode)
     if int(max_steps) < 1 or int(num_episodes) < 1:
         raise ValueError(f"max_steps ({max_steps}) and num_episodes ({num_episodes}) must be positive")
     reset_keys, stream_keys = reset_episode_keys(seed, num_episodes)

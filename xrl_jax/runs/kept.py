@@ -56,14 +56,13 @@ def protocol_groups(configs: list[tuple[Path, Any]], note=None) -> list[list[tup
     return out
 
 
-def keep_records(folders: list[Path], out: Path) -> list[Path]:
+def keep_records(folders: list[Path], out: Path) -> None:
     """Copy what the report reads of each run folder into ``out/runs/<folder name>``: its ``config.json``
     and its evaluation lines without their per-episode values. ``report.py out/runs/* NEW_RUN --out
     out`` then writes the report again with a run added, after the run folders are gone (a user's
     clone, another machine). The copies replace the folder's earlier ones as a whole, so it holds
     exactly the runs of this report; given as sources themselves, they are read before they are
-    replaced. Runs whose folders share a name are kept as ``<name>``, ``<name>-2``, ...; returns the
-    copies' paths."""
+    replaced. Runs whose folders share a name are kept as ``<name>``, ``<name>-2``, ..."""
     staging, kept, former = out / f".{RECORDS}.new", out / RECORDS, out / f".{RECORDS}.old"
     if former.exists() and not kept.exists():  # a report stopped between the two renames below
         former.rename(kept)
@@ -86,4 +85,3 @@ def keep_records(folders: list[Path], out: Path) -> list[Path]:
         kept.rename(former)
     staging.rename(kept)
     shutil.rmtree(former, ignore_errors=True)
-    return [kept / name for name in names]
