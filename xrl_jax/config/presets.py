@@ -1,7 +1,7 @@
 """The presets as tables: agent hyper-parameters per (env, algo) and train-loop settings per (preset,
-scenario). paper = docs/algorithms.md §5.7 / §4.7 and, for the Intersection, the released configs of
-docs/carenv-intersection.md §8.7; quick = a budget of tens of thousands of steps; smoke = tiny. Adding
-a preset touches this module only."""
+scenario kind), refined per env where one needs its own. paper = docs/algorithms.md §5.7 / §4.7 and,
+for the Intersection, the released configs of docs/carenv-intersection.md §8.7; quick = a budget of
+tens to hundreds of thousands of steps; smoke = tiny. Adding a preset touches this module only."""
 
 from __future__ import annotations
 
@@ -40,9 +40,15 @@ QUICK_RACING_OPTIMISATION = {
 # entropy 0.9) by 15k steps. docs/quick_preset_tuning.md keeps the measurements.
 QUICK_INTERSECTION_OPTIMISATION = {"init_alpha": 0.005, "actor_lr": 6e-4, "critic_lr": 6e-4}
 QUICK_SIZES = {"actor_width": 64, "critic_width": 64, "fe_width": 32, "actor_depth": 2, "critic_depth": 2}
+# Tracking's baselines read all 25 centre-line points with one network, which width 64 starves (SAC
+# levelled off at ~11 over 80k steps; at width 128 it reached 49.2 after 240k); the mixture agents'
+# actors read one point each and gain nothing from width 128 (XSAC at 80k: 35.5 against 34.2).
+# docs/quick_preset_tuning.md has the runs. fe_width, which only a Deep Set uses, doubles along.
+QUICK_TRACKING_BASELINE_SIZES = {"actor_width": 128, "critic_width": 128, "fe_width": 128}
 SMOKE_SIZES = dict(actor_width=16, actor_depth=2, critic_width=16, critic_depth=1, fe_width=16, pe_freqs=2)
 
-# Train-loop settings by (preset, scenario); unset fields keep TrainConfig's defaults, which are the
+# Train-loop settings by (preset, scenario kind: "racing" or "intersection"), and by (preset, env) for an
+# env that refines its kind's row; unset fields keep TrainConfig's defaults, which are the
 # paper's racing protocol (§5.7: 1e6 steps, buffer 1e6, evaluation every 1e5 steps on 100 tracks).
 # Intersection steps are multi-agent env steps (docs/carenv-intersection.md §8): every alive agent's
 # transition is stored and followed by one update; paper = the released configs (§8.7 there, 2 envs
@@ -53,6 +59,10 @@ TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
     ("quick", "racing"): dict(
         total_steps=80_000, batch_size=128, log_interval=1_000, eval_interval=5_000,
         checkpoint_interval=10_000, warmup_steps=1_000),
+    # Tracking over the racing row: 80k steps left all but XDSAC below the hand controller; SAC passed
+    # it after 240k (docs/quick_preset_tuning.md). Every Tracking agent trains that long, evaluated
+    # less often.
+    ("quick", "tracking"): dict(total_steps=240_000, eval_interval=40_000),
     ("smoke", "racing"): dict(
         total_steps=192, num_envs=4, warmup_steps=64, batch_size=16, buffer_size=256, log_interval=64,
         eval_interval=192, checkpoint_interval=64, eval_episodes=3, train_tracks=3),
@@ -116,8 +126,8 @@ def _paper_agent(env: str, algo: str) -> AgentConfig:
 
 def preset(name: str, env: str, algo: str) -> AgentConfig:
     """The agent of preset ``name`` for (env, algo): paper (a user's env: Country Road's); quick =
-    width 64 and, on the single-agent scenarios, the short-budget optimisation constants (on the
-    Intersection, every slot computed); smoke = tiny networks."""
+    width 64 (128 for Tracking's baselines) and, on the single-agent scenarios, the short-budget
+    optimisation constants (on the Intersection, every slot computed); smoke = tiny networks."""
     scenario(env)  # an unknown env fails here, saying how a user's env is registered
     for kind, value, choices in (("preset", name, PRESETS), ("algo", algo, ALGOS)):
         check_choice("", kind, value, choices)
@@ -126,6 +136,8 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
         agent = agent.replace(**QUICK_SIZES)
         if env != "intersection":
             agent = agent.replace(**QUICK_RACING_OPTIMISATION)
+        if env == "tracking" and algo not in MIXTURE_ALGOS:
+            agent = agent.replace(**QUICK_TRACKING_BASELINE_SIZES)
         else:  # α stays fixed; 8 slots at width 64: packing cost more than it saved (docs/performance.md)
             agent = agent.replace(packed_rows=None, **QUICK_INTERSECTION_OPTIMISATION)
     elif name == "smoke":
@@ -134,9 +146,11 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
 
 
 def preset_train_fields(name: str, env: str) -> dict[str, Any]:
-    """The train-loop settings of preset ``name`` on ``env``; a user's env takes the racing ones
-    (single-agent steps), without their track settings."""
+    """The train-loop settings of preset ``name`` on ``env``: its scenario kind's row, refined by the
+    env's own where it has one; a user's env takes the racing ones (single-agent steps), without their
+    track settings."""
     fields = dict(TRAIN_PRESETS[(name, "intersection" if scenario(env).multi_agent else "racing")])
+    fields.update(TRAIN_PRESETS.get((name, env), {}))  # an env's own row refines its scenario kind's
     if scenario(env).custom:
         fields.pop("train_tracks", None)
     return fields
