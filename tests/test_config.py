@@ -1,5 +1,6 @@
 """Agent configs: the paper presets of docs/algorithms.md §5.7 / §4.7, validation with clear errors."""
 
+import dataclasses
 import math
 
 import pytest
@@ -95,6 +96,20 @@ def test_quick_tracking_trains_longer_and_widens_only_the_baselines():
     widths = {algo: (cfg.agent.actor_width, cfg.agent.critic_width) for algo, cfg in tracking.items()}
     assert widths == {"sac": (128, 128), "dsac": (128, 128), "xsac": (64, 64), "xdsac": (64, 64)}
     assert country_road.agent.actor_width == 64
+
+
+@pytest.mark.parametrize("env", ["country_road", "tracking"])
+@pytest.mark.parametrize("algo", ALGOS)
+def test_quick_racing_agents_differ_from_the_paper_only_in_sizes_and_optimisation(env, algo):
+    """The quick preset shrinks the networks and retunes the optimiser on the racing scenarios, and
+    nothing else: the Intersection's settings (every slot computed, no packing) must not leak in."""
+    quick, paper = preset("quick", env, algo), preset("paper", env, algo)
+    fields = [f.name for f in dataclasses.fields(AgentConfig)]
+    changed = {name for name in fields if getattr(quick, name) != getattr(paper, name)}
+    sizes = {"actor_width", "critic_width", "fe_width", "actor_depth", "critic_depth"}
+    optimisation = {"init_alpha", "alpha_lr", "actor_lr", "critic_lr", "gamma"}
+    assert changed <= sizes | optimisation, changed - sizes - optimisation
+    assert (quick.gamma, quick.alpha_lr) == (0.98, 1e-3)
 
 
 @pytest.mark.parametrize(

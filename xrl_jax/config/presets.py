@@ -136,10 +136,10 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
         agent = agent.replace(**QUICK_SIZES)
         if env != "intersection":
             agent = agent.replace(**QUICK_RACING_OPTIMISATION)
-        if env == "tracking" and algo not in MIXTURE_ALGOS:
-            agent = agent.replace(**QUICK_TRACKING_BASELINE_SIZES)
         else:  # α stays fixed; 8 slots at width 64: packing cost more than it saved (docs/performance.md)
             agent = agent.replace(packed_rows=None, **QUICK_INTERSECTION_OPTIMISATION)
+        if env == "tracking" and algo not in MIXTURE_ALGOS:
+            agent = agent.replace(**QUICK_TRACKING_BASELINE_SIZES)
     elif name == "smoke":
         agent = agent.replace(**SMOKE_SIZES)
     return agent
