@@ -41,8 +41,9 @@ QUICK_RACING_OPTIMISATION = {
 QUICK_INTERSECTION_OPTIMISATION = {"init_alpha": 0.005, "actor_lr": 6e-4, "critic_lr": 6e-4}
 QUICK_SIZES = {"actor_width": 64, "critic_width": 64, "fe_width": 32, "actor_depth": 2, "critic_depth": 2}
 # Tracking's baselines read all 25 centre-line points with one network, which width 64 starves (SAC
-# levelled off at ~11 over 80k steps; at width 128 it reached 49.2 after 240k); the mixture agents'
-# actors read one point each and gain nothing from width 128 (XSAC at 80k: 35.5 against 34.2).
+# levelled off at ~11 over 80k steps; at width 128 it reached 49.2 after 240k). The mixture agents'
+# actors read one point each: XDSAC reached 63.5 at width 64; XSAC ended at 28.9 (two of four seeds
+# stuck driving fast and crashing), and whether width 128 frees it as it freed SAC is untried at 240k.
 # docs/quick_preset_tuning.md has the runs. fe_width, which only a Deep Set uses, doubles along.
 QUICK_TRACKING_BASELINE_SIZES = {"actor_width": 128, "critic_width": 128, "fe_width": 128}
 SMOKE_SIZES = dict(actor_width=16, actor_depth=2, critic_width=16, critic_depth=1, fe_width=16, pe_freqs=2)
