@@ -38,7 +38,7 @@ def test_presets_resolve_with_the_spec_values():
     assert chosen.buffer_size == 20_000  # ...unless the user sets its size
     # the quick learning rates decay to zero at the last update (one per transition after warm-up)
     assert (quick.agent.actor_lr, quick.agent.critic_lr) == (6e-4, 6e-4)
-    assert quick.agent.lr_decay_updates == quick.total_steps - quick.warmup_steps == 79_000
+    assert quick.agent.lr_decay_updates == quick.total_steps - quick.warmup_steps == 239_000  # Tracking: 240k
     assert longer.agent.lr_decay_updates == 70_000 - longer.warmup_steps
     constant = resolve_config("tracking", "xsac", "quick", overrides={"lr_decay_updates": "0"})
     assert constant.agent.lr_decay_updates == 0
