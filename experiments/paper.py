@@ -12,7 +12,8 @@ DIR/report. ``--dry-run`` prints the plan instead: every run, its
 members, the memory per member and the groups on this machine's devices, the FLOPs per update as
 it runs (XLA's cost analysis of the packed per-object layers, weighted with the measured chance
 that a batch holds too many objects for them; beside it the every-slot count; docs/performance.md)
-and the device-hours they take at a stated throughput.
+and the device-hours they take at a stated throughput, each for what would run (a started or finished
+run's own config.json; a new one's preset, --seeds and --set).
 """
 
 from __future__ import annotations
@@ -103,7 +104,13 @@ def main(argv: list[str] | None = None) -> int:
         return fail(PROG, err)
     out = Path(args.out)
     if args.dry_run:
-        for line in format_plan(plan(runs, out, args.preset, args.seeds, args.utilisation), args.utilisation):
+        from xrl_jax.runs.folder import RunFolderError  # imports jax: not before --help
+
+        try:
+            rows = plan(runs, out, args.preset, args.seeds, args.utilisation, tuple(args.set))
+        except RunFolderError as err:  # a started run's config.json unreadable: say which, not a trace
+            return fail(PROG, err)
+        for line in format_plan(rows, args.utilisation):
             print(line)
         return 0
     import run as run_cli

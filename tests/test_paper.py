@@ -61,6 +61,19 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     assert "tracking-dsac: starting" in err and "report:" in text
     status, _, err = call(paper, capsys, *args)
     assert status == 0 and "tracking-dsac: done, skipped" in err
+    # The plan costs what would run: the finished run as it ran (2 seeds, smoke widths), a new one with
+    # the command's --seeds and --set.
+    plans = {}
+    for sets in ((), ("--set", "actor_width=64")):
+        dry = ["--out", str(out), "--dry-run", "--preset", "smoke", "--only", "tracking-*dsac", *sets]
+        status, text, _ = call(paper, capsys, *dry)
+        assert status == 0
+        rows = [line.split() for line in text.splitlines() if line.startswith("tracking-")]
+        plans[sets] = {row[0]: row for row in rows}
+    plain, wide = plans.values()
+    assert plain["tracking-dsac"][3:5] == ["done", "2"] and plain["tracking-xdsac"][3:5] == ["new", "20"]
+    assert wide["tracking-dsac"] == plain["tracking-dsac"]
+    assert float(wide["tracking-xdsac"][-4]) > float(plain["tracking-xdsac"][-4])  # GFLOP per update
     # A report that cannot be written fails in one line and keeps the finished runs.
     shutil.rmtree(out / "report")
     (out / "report").write_text("not a folder")

@@ -110,23 +110,32 @@ def check_sets(runs: list[PlannedRun], sets: list[str]) -> None:
             raise ConfigError(f"{planned.name} sets this itself: {err}") from None
 
 
-def plan(runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation: float) -> list[dict]:
-    """One row per run: its status, members, memory and groups on this machine, FLOPs and device-hours."""
+def plan(
+    runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation: float, sets: tuple[str, ...] = ()
+) -> list[dict]:
+    """One row per run: its status, members, memory and groups on this machine, FLOPs and device-hours,
+    each for the configuration that will run: a started or finished run's own (``config.json``), a new
+    one's from the preset, its own settings and the campaign's ``sets``."""
     from xrl_jax.occupancy import load_occupancy, update_cost
     from xrl_jax.resources import format_bytes
+    from xrl_jax.runs.folder import read_run_config
     from xrl_jax.train import get_trainer, plan_memory
 
     occupancy = load_occupancy()
     rows = []
     for run in runs:
-        cfg = resolve_config(
-            run.env,
-            run.algo,
-            preset,
-            num_seeds=seeds,
-            overrides=parse_overrides(list(run.sets)),
-            sweep=parse_sweep(list(run.sweep)),
-        )
+        status = run_status(out / run.name)
+        if status == "new":
+            cfg = resolve_config(
+                run.env,
+                run.algo,
+                preset,
+                num_seeds=seeds,
+                overrides=parse_overrides([*run.sets, *sets]),
+                sweep=parse_sweep(list(run.sweep)),
+            )
+        else:  # resumed as it was started: neither --preset, --seeds nor --set reach it
+            cfg = read_run_config(out / run.name)
         trainer = get_trainer(cfg)
         memory = plan_memory(trainer, cfg)
         # FLOPs as they run: the packed update, or every slot when a batch overflows (by the measured
@@ -141,7 +150,7 @@ def plan(runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation
             {
                 "run": run.name,
                 "figure": run.figure,
-                "status": run_status(out / run.name),
+                "status": status,
                 "members": cfg.num_members,
                 "steps": cfg.total_steps,
                 "memory_per_member": format_bytes(memory["per_seed_bytes"]["total"]),
