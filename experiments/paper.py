@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         return fail(PROG, f"--utilisation must be in (0, 1], got {args.utilisation}")
     try:
         runs = select_runs(args.only)
-        check_sets(runs, args.set)
+        check_sets(runs, args.set, args.preset, args.seeds)
     except ConfigError as err:
         return fail(PROG, err)
     out = Path(args.out)

@@ -101,6 +101,10 @@ def test_bad_input_fails_in_one_line(paper, capsys, tmp_path):
     one_line_error(status, err, "--set gamma is given twice", "'gamma=0.9'", "'agent.gamma=0.8'")
     status, _, err = call(paper, capsys, "--out", str(out), "--set", "weight_depth=2")
     one_line_error(status, err, "country_road-xsac-weights1 sets this itself", "'weight_depth=1'")
+    # A value a run's config refuses, too, and in the plan as well as in a campaign.
+    for dry in ([], ["--dry-run"]):
+        status, _, err = call(paper, capsys, "--out", str(out), "--set", "actor_width=0", *dry)
+        one_line_error(status, err, "country_road-sac: AgentConfig: actor_width must be a positive integer")
     assert not out.exists()
 
 

@@ -98,16 +98,34 @@ def run_status(folder: Path) -> str:
     return "started" if has_config(folder) else "new"
 
 
-def check_sets(runs: list[PlannedRun], sets: list[str]) -> None:
+def new_run_config(run: PlannedRun, preset: str, seeds: int, sets: tuple[str, ...] | list[str] = ()):
+    """The :class:`~xrl_jax.config.TrainConfig` that starting ``run`` gives: the preset, ``seeds``,
+    the run's own settings and the campaign's ``sets``."""
+    return resolve_config(
+        run.env,
+        run.algo,
+        preset,
+        num_seeds=seeds,
+        overrides=parse_overrides([*run.sets, *sets]),
+        sweep=parse_sweep(list(run.sweep)),
+    )
+
+
+def check_sets(runs: list[PlannedRun], sets: list[str], preset: str, seeds: int) -> None:
     """Raise :class:`~xrl_jax.config.ConfigError` when the ``--set`` items cannot reach the runs (one
-    malformed, a setting given twice, or one that a run sets itself): checked before the first run
-    starts rather than when a later run refuses them and ends the campaign halfway."""
+    malformed, a setting given twice, one that a run sets itself, or a value a run's config refuses):
+    checked before the first run starts rather than when a later run refuses them and ends the
+    campaign halfway."""
     parse_overrides(sets)
     for planned in runs:
         try:
             parse_overrides([*planned.sets, *sets])
         except ConfigError as err:
             raise ConfigError(f"{planned.name} sets this itself: {err}") from None
+        try:
+            new_run_config(planned, preset, seeds, sets)
+        except ConfigError as err:
+            raise ConfigError(f"{planned.name}: {err}") from None
 
 
 def plan(
@@ -125,17 +143,8 @@ def plan(
     rows = []
     for run in runs:
         status = run_status(out / run.name)
-        if status == "new":
-            cfg = resolve_config(
-                run.env,
-                run.algo,
-                preset,
-                num_seeds=seeds,
-                overrides=parse_overrides([*run.sets, *sets]),
-                sweep=parse_sweep(list(run.sweep)),
-            )
-        else:  # resumed as it was started: neither --preset, --seeds nor --set reach it
-            cfg = read_run_config(out / run.name)
+        # A started run resumes as it was started: neither --preset, --seeds nor --set reach it.
+        cfg = new_run_config(run, preset, seeds, sets) if status == "new" else read_run_config(out / run.name)
         trainer = get_trainer(cfg)
         memory = plan_memory(trainer, cfg)
         # FLOPs as they run: the packed update, or every slot when a batch overflows (by the measured
