@@ -29,7 +29,7 @@ def test_dry_run_prints_the_plan_and_writes_nothing(paper, capsys, tmp_path):
     status, text, _ = call(paper, capsys, *args)
     assert status == 0 and not out.exists()
     (row,) = [line.split() for line in text.splitlines() if line.startswith("tracking-")]
-    assert row[:5] == ["tracking-dsac", "Fig.", "6", "new", "20"]  # members: the default 20 seeds
+    assert row[:6] == ["tracking-dsac", "Fig.", "6", "new", "0%", "20"]  # members: the default 20 seeds
     assert float(row[-3]) > 0 and "H100 hours at 25% of 67 TFLOP/s" in text  # GFLOP per update
     # Patterns match whole names: the Country Road pair of Fig. 5 without the kappa sweep.
     args = ["--out", str(out), "--dry-run", "--preset", "smoke", "--only", "country_road-*dsac"]
@@ -71,7 +71,11 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
         rows = [line.split() for line in text.splitlines() if line.startswith("tracking-")]
         plans[sets] = {row[0]: row for row in rows}
     plain, wide = plans.values()
-    assert plain["tracking-dsac"][3:5] == ["done", "2"] and plain["tracking-xdsac"][3:5] == ["new", "20"]
+    assert plain["tracking-dsac"][3:6] == ["done", "100%", "2"] and plain["tracking-xdsac"][3:6] == [
+        "new",
+        "0%",
+        "20",
+    ]
     assert wide["tracking-dsac"] == plain["tracking-dsac"]
     assert float(wide["tracking-xdsac"][-4]) > float(plain["tracking-xdsac"][-4])  # GFLOP per update
     # A report that cannot be written fails in one line and keeps the finished runs.
@@ -80,6 +84,19 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     status, _, err = call(paper, capsys, *args)
     assert status == 1 and "the runs are kept, but the report failed" in err and "is a file" in err
     assert "Traceback" not in err and (out / "tracking-dsac" / "summary.json").is_file()
+    # A started run costs what its checkpoints leave to run, not its whole budget: stopped at the
+    # checkpoint of step 128 of 192, each seed has done 128 steps and half of its 128 updates (they
+    # start after the 64 warm-up steps).
+    (out / "tracking-dsac" / "summary.json").unlink()
+    shutil.rmtree(out / "tracking-dsac" / "checkpoints" / "group_0" / "192")
+    runs = [run for run in paper.campaign() if run.name == "tracking-dsac"]
+    (row,) = paper.plan(runs, out, "smoke", 2, 0.25)
+    assert row["status"] == "started" and row["progress"] == pytest.approx(128 / 192)
+    assert row["cpu_hours_left"] == pytest.approx(row["cpu_hours"] / 2)
+    status, text, _ = call(
+        paper, capsys, "--out", str(out), "--dry-run", "--preset", "smoke", "--only", "tracking-dsac"
+    )
+    assert status == 0 and "started    67%" in text
 
 
 def test_a_stopped_campaign_is_continued_by_its_own_command(paper):

@@ -98,6 +98,21 @@ def run_status(folder: Path) -> str:
     return "started" if has_config(folder) else "new"
 
 
+def member_steps_done(folder: Path, cfg) -> list[int]:
+    """Per member, the step its group's newest checkpoint holds: where a resume continues (0 without
+    one)."""
+    from xrl_jax.checkpoint import latest_step
+    from xrl_jax.runs.folder import checkpoint_dir, read_checkpoint_plan
+
+    groups, _ = read_checkpoint_plan(folder, cfg.num_members)
+    done = [0] * cfg.num_members
+    for index, group in enumerate(groups):
+        step = latest_step(checkpoint_dir(folder, index)) or 0
+        for member in group:
+            done[member] = step
+    return done
+
+
 def new_run_config(run: PlannedRun, preset: str, seeds: int, sets: tuple[str, ...] | list[str] = ()):
     """The :class:`~xrl_jax.config.TrainConfig` that starting ``run`` gives: the preset, ``seeds``,
     the run's own settings and the campaign's ``sets``."""
@@ -151,10 +166,17 @@ def plan(
         # occupancy of docs/set_occupancy.json, members sharing their branches as on one device).
         cost = update_cost(trainer.agent, cfg.batch_size, cfg.num_members, occupancy)
         flops = cost["expected"]
-        per_member = max(cfg.total_steps - cfg.warmup_steps, 0)
+        if status == "started":
+            done = member_steps_done(out / run.name, cfg)
+        else:  # a finished run counts as done whatever its checkpoints hold
+            done = [cfg.total_steps if status == "done" else 0] * cfg.num_members
+        # A member updates once per step after the warm-up.
+        updates = max(cfg.total_steps - cfg.warmup_steps, 0) * cfg.num_members
+        updates_left = sum(max(cfg.total_steps - max(step, cfg.warmup_steps), 0) for step in done)
+        per_update = flops
         if cfg.multi_agent:  # one update per acting vehicle: as many as measured per env step
-            per_member *= occupancy["intersection"]["acting_vehicles_per_env_step"]
-        total = flops * per_member * cfg.num_members
+            per_update *= occupancy["intersection"]["acting_vehicles_per_env_step"]
+        total, left = per_update * updates, per_update * updates_left
         rows.append(
             {
                 "run": run.name,
@@ -168,28 +190,31 @@ def plan(
                 "gflop_per_update": flops / 1e9,
                 "dense_gflop_per_update": cost["dense"] / 1e9,
                 "fallback_probability": cost["fallback_probability"],
+                "progress": sum(done) / (cfg.total_steps * cfg.num_members),
                 "pflop_total": total / 1e15,
                 "cpu_hours": total / CPU_FLOPS / 3600,
                 "h100_hours": total / (H100_FLOPS * utilisation) / 3600,
+                "cpu_hours_left": left / CPU_FLOPS / 3600,
+                "h100_hours_left": left / (H100_FLOPS * utilisation) / 3600,
             }
         )
     return rows
 
 
 def format_plan(rows: list[dict], utilisation: float) -> list[str]:
-    """The plan as a table, and the device-hours of what is still to run."""
+    """The plan as a table (each run's whole cost, and how much of it its checkpoints already hold),
+    and the device-hours of what is still to run."""
     lines = [
-        f"{'run':<30} {'for':<8} {'status':<8} {'members':>7} {'memory/member':>13} {'groups':>6} "
-        f"{'GFLOP/upd':>9} {'dense':>7} {'CPU h':>10} {'H100 h':>8}"
+        f"{'run':<30} {'for':<8} {'status':<8} {'done':>5} {'members':>7} {'memory/member':>13} "
+        f"{'groups':>6} {'GFLOP/upd':>9} {'dense':>7} {'CPU h':>10} {'H100 h':>8}"
     ]
     for r in rows:
         lines.append(
-            f"{r['run']:<30} {r['figure']:<8} {r['status']:<8} {r['members']:>7} "
+            f"{r['run']:<30} {r['figure']:<8} {r['status']:<8} {r['progress']:>5.0%} {r['members']:>7} "
             f"{r['memory_per_member']:>13} {r['groups']:>6} {r['gflop_per_update']:>9.3g} "
             f"{r['dense_gflop_per_update']:>7.3g} {r['cpu_hours']:>10,.1f} {r['h100_hours']:>8,.2f}"
         )
-    todo = [r for r in rows if r["status"] != "done"]
-    cpu, h100 = sum(r["cpu_hours"] for r in todo), sum(r["h100_hours"] for r in todo)
+    cpu, h100 = sum(r["cpu_hours_left"] for r in rows), sum(r["h100_hours_left"] for r in rows)
     lines.append(
         f"total still to run: {cpu:,.0f} CPU hours at {CPU_FLOPS / 1e9:.0f} GFLOP/s (this 2-core CPU), "
         f"{h100:,.1f} H100 hours at {utilisation:.0%} of {H100_FLOPS / 1e12:.0f} TFLOP/s; updates only "
