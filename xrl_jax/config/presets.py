@@ -40,12 +40,13 @@ QUICK_RACING_OPTIMISATION = {
 # entropy 0.9) by 15k steps. docs/quick_preset_tuning.md keeps the measurements.
 QUICK_INTERSECTION_OPTIMISATION = {"init_alpha": 0.005, "actor_lr": 6e-4, "critic_lr": 6e-4}
 QUICK_SIZES = {"actor_width": 64, "critic_width": 64, "fe_width": 32, "actor_depth": 2, "critic_depth": 2}
-# Tracking's baselines read all 25 centre-line points with one network, which width 64 starves (SAC
-# levelled off at ~11 over 80k steps; at width 128 it reached 49.2 after 240k). The mixture agents'
-# actors read one point each: XDSAC reached 63.5 at width 64; XSAC ended at 28.9 (two of four seeds
-# stuck driving fast and crashing), and whether width 128 frees it as it freed SAC is untried at 240k.
-# docs/quick_preset_tuning.md has the runs. fe_width, which only a Deep Set uses, doubles along.
-QUICK_TRACKING_BASELINE_SIZES = {"actor_width": 128, "critic_width": 128, "fe_width": 128}
+# Tracking at width 64 starved the agents whose one network reads all 25 centre-line points (SAC
+# levelled off at ~11 over 80k steps; at width 128 it reached 49.2 after 240k) and left two of XSAC's
+# four seeds stuck driving fast and crashing (28.9 after 240k); at width 128 XSAC's four seeds were at
+# 25.6-66.3 by 80k. XDSAC passes at width 64 (63.5) and stays there. docs/quick_preset_tuning.md has
+# the runs. fe_width, which only a Deep Set uses, doubles along.
+QUICK_TRACKING_WIDE_SIZES = {"actor_width": 128, "critic_width": 128, "fe_width": 128}
+QUICK_TRACKING_WIDE_ALGOS = ("sac", "dsac", "xsac")
 SMOKE_SIZES = dict(actor_width=16, actor_depth=2, critic_width=16, critic_depth=1, fe_width=16, pe_freqs=2)
 
 # Train-loop settings by (preset, scenario kind: "racing" or "intersection"), and by (preset, env) for an
@@ -127,7 +128,7 @@ def _paper_agent(env: str, algo: str) -> AgentConfig:
 
 def preset(name: str, env: str, algo: str) -> AgentConfig:
     """The agent of preset ``name`` for (env, algo): paper (a user's env: Country Road's); quick =
-    width 64 (128 for Tracking's baselines) and, on the single-agent scenarios, the short-budget
+    width 64 (128 on Tracking but for XDSAC) and, on the single-agent scenarios, the short-budget
     optimisation constants (on the Intersection, every slot computed); smoke = tiny networks."""
     scenario(env)  # an unknown env fails here, saying how a user's env is registered
     for kind, value, choices in (("preset", name, PRESETS), ("algo", algo, ALGOS)):
@@ -139,8 +140,8 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
             agent = agent.replace(**QUICK_RACING_OPTIMISATION)
         else:  # α stays fixed; 8 slots at width 64: packing cost more than it saved (docs/performance.md)
             agent = agent.replace(packed_rows=None, **QUICK_INTERSECTION_OPTIMISATION)
-        if env == "tracking" and algo not in MIXTURE_ALGOS:
-            agent = agent.replace(**QUICK_TRACKING_BASELINE_SIZES)
+        if env == "tracking" and algo in QUICK_TRACKING_WIDE_ALGOS:
+            agent = agent.replace(**QUICK_TRACKING_WIDE_SIZES)
     elif name == "smoke":
         agent = agent.replace(**SMOKE_SIZES)
     return agent
