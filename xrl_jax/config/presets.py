@@ -42,9 +42,9 @@ QUICK_INTERSECTION_OPTIMISATION = {"init_alpha": 0.005, "actor_lr": 6e-4, "criti
 QUICK_SIZES = {"actor_width": 64, "critic_width": 64, "fe_width": 32, "actor_depth": 2, "critic_depth": 2}
 # Tracking at width 64 starved the agents whose one network reads all 25 centre-line points (SAC
 # levelled off at ~11 over 80k steps; at width 128 it reached 49.2 after 240k) and left two of XSAC's
-# four seeds stuck driving fast and crashing (28.9 after 240k); at width 128 XSAC's four seeds were at
-# 25.6-66.3 by 80k. XDSAC passes at width 64 (63.5) and stays there. docs/quick_preset_tuning.md has
-# the runs. fe_width, which only a Deep Set uses, doubles along.
+# four seeds stuck driving fast and crashing (28.9 after 240k; at width 128 both left that mode and XSAC
+# reached 72.2). XDSAC passes at width 64 (63.5) and stays there. docs/quick_preset_tuning.md has the
+# runs. fe_width, which only a Deep Set uses, doubles along.
 QUICK_TRACKING_WIDE_SIZES = {"actor_width": 128, "critic_width": 128, "fe_width": 128}
 QUICK_TRACKING_WIDE_ALGOS = ("sac", "dsac", "xsac")
 SMOKE_SIZES = dict(actor_width=16, actor_depth=2, critic_width=16, critic_depth=1, fe_width=16, pe_freqs=2)
