@@ -170,13 +170,12 @@ def plan(
             done = member_steps_done(out / run.name, cfg)
         else:  # a finished run counts as done whatever its checkpoints hold
             done = [cfg.total_steps if status == "done" else 0] * cfg.num_members
-        # A member updates once per step after the warm-up.
+        # A member updates after each step past the warm-up.
         updates = max(cfg.total_steps - cfg.warmup_steps, 0) * cfg.num_members
         updates_left = sum(max(cfg.total_steps - max(step, cfg.warmup_steps), 0) for step in done)
-        per_update = flops
-        if cfg.multi_agent:  # one update per acting vehicle: as many as measured per env step
-            per_update *= occupancy["intersection"]["acting_vehicles_per_env_step"]
-        total, left = per_update * updates, per_update * updates_left
+        # On the Intersection one update per acting vehicle: as many as measured per env step.
+        per_step = occupancy["intersection"]["acting_vehicles_per_env_step"] if cfg.multi_agent else 1
+        total, left = flops * per_step * updates, flops * per_step * updates_left
         rows.append(
             {
                 "run": run.name,
