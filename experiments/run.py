@@ -31,11 +31,12 @@ EPILOG = """\
 presets:
   paper  the per-configuration hyper-parameters of docs/algorithms.md §5.7 (1e6 steps, buffer
          1e6, batch 256, 4 envs per seed, evaluation every 1e5 steps on 100 fixed tracks)
-  quick  80k steps per seed (Tracking: 240k, evaluated every 40k), a buffer that keeps every
-         transition, width-64 networks (Tracking's SAC, DSAC and XSAC: 128), batch 128, and optimisation
-         constants for a short budget (initial alpha 0.005, alpha lr 1e-3, actor and critic lr
-         6e-4, all three decaying linearly to zero by the last update, gamma 0.98); the README's
-         Results give each run's wall time
+  quick  240k steps per seed on Tracking, 320k on Country Road (evaluated every 40k; 80k, every
+         5k, for an env of your own), a buffer that keeps every transition, width-64 networks
+         (Tracking's SAC, DSAC and XSAC: 128), batch 128, and optimisation constants for a short
+         budget (initial alpha 0.005, alpha lr 1e-3, actor and critic lr 6e-4, all three
+         decaying linearly to zero by the last update, gamma 0.98); the README's Results give
+         each run's wall time
   smoke  a few hundred steps with tiny networks, for tests
   intersection (multi-agent, one shared policy): paper = the released configs (5e6 env steps,
          buffer 1.5e7 agent transitions, batch 512, 2 envs, re-initialisation every 500,001 steps,

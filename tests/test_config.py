@@ -84,18 +84,20 @@ def test_smoke_preset_is_tiny_with_paper_optimisation():
     assert cfg.actor_width < 64 and cfg.actor_lr == 3e-4 and cfg.gamma == 0.95
 
 
-def test_quick_tracking_trains_longer_and_widens_all_but_xdsac():
-    """Tracking's own row refines the racing one (240k steps); Country Road keeps the racing row. Width
-    128 for every Tracking agent but XDSAC, which passed the controller at width 64."""
+def test_quick_racing_rows_train_longer_and_widen_tracking_but_xdsac():
+    """Tracking's and Country Road's own rows refine the racing one (240k and 320k steps, evaluated
+    every 40k); the rest of the racing row stays. Width 128 for every Tracking agent but XDSAC, which
+    passed the controller at width 64; Country Road keeps width 64."""
     tracking = {algo: resolve_config("tracking", algo, "quick", num_seeds=1) for algo in ALGOS}
-    country_road = resolve_config("country_road", "dsac", "quick", num_seeds=1)
+    country_road = {algo: resolve_config("country_road", algo, "quick", num_seeds=1) for algo in ALGOS}
     assert {cfg.total_steps for cfg in tracking.values()} == {240_000}
-    assert {cfg.eval_interval for cfg in tracking.values()} == {40_000}
-    assert (country_road.total_steps, country_road.eval_interval) == (80_000, 5_000)
-    assert country_road.batch_size == tracking["sac"].batch_size == 128  # the rest of the racing row
+    assert {cfg.total_steps for cfg in country_road.values()} == {320_000}
+    assert {cfg.eval_interval for cfg in [*tracking.values(), *country_road.values()]} == {40_000}
+    assert country_road["dsac"].batch_size == tracking["sac"].batch_size == 128  # the racing row
+    assert country_road["dsac"].checkpoint_interval == 10_000
     widths = {algo: (cfg.agent.actor_width, cfg.agent.critic_width) for algo, cfg in tracking.items()}
     assert widths == {"sac": (128, 128), "dsac": (128, 128), "xsac": (128, 128), "xdsac": (64, 64)}
-    assert country_road.agent.actor_width == 64
+    assert {cfg.agent.actor_width for cfg in country_road.values()} == {64}
 
 
 @pytest.mark.parametrize("env", ["country_road", "tracking"])
