@@ -11,7 +11,7 @@ from train_support import load_script
 
 from xrl_jax import stats
 from xrl_jax.config import parse_sweep, resolve_config
-from xrl_jax.report import improvements, read_run, read_runs, results_rows, write_report
+from xrl_jax.report import env_figure, improvements, read_run, read_runs, results_rows, write_report
 from xrl_jax.runs import config_document
 from xrl_jax.runs.folder import member_fields, member_stem
 
@@ -129,6 +129,26 @@ def test_report_cli_writes_tables_figures_and_report(folders, tmp_path, capsys):
     assert cli.main([str(tmp_path / "nothing"), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "does not exist" in err[0]
+
+
+def test_env_figure_gives_each_agent_one_colour_and_shows_a_one_point_curve(tmp_path):
+    """An unfinished run (one evaluation, halfway; no final) listed first: the finished run's bar
+    takes its own curve's colour, not the first one, and the one-point curve is drawn (a marker: a
+    line through one point draws nothing)."""
+    from matplotlib.colors import to_hex
+
+    unfinished = fake_run(tmp_path / "dsac", "country_road", "dsac", "quick", [1.0, 2.0])
+    for path in (unfinished / "eval").iterdir():
+        path.write_text(path.read_text().splitlines(keepends=True)[0])
+    finished = fake_run(tmp_path / "xdsac", "country_road", "xdsac", "quick", [3.0, 4.0])
+    figure = env_figure(read_runs([unfinished, finished]), "country_road")
+    bars, curves = figure.axes[0], figure.axes[2]  # final return; its learning curves
+    colours = {line.get_label(): to_hex(line.get_color()) for line in curves.get_lines()}
+    [bar] = bars.containers
+    assert [tick.get_text() for tick in bars.get_yticklabels()] == ["xdsac"]
+    assert to_hex(bar.lines[0].get_color()) == colours["xdsac"] != colours["dsac"]
+    [one_point] = [line for line in curves.get_lines() if line.get_label() == "dsac"]
+    assert len(one_point.get_xdata()) == 1 and one_point.get_marker() not in ("None", "", None)
 
 
 @pytest.mark.parametrize("where", ["an existing file", "below a file"])

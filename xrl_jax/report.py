@@ -249,10 +249,10 @@ def improvements(
     return out
 
 
-def plot_env(runs: list[Run], env: str, path: Path, references: list[dict] | None = None) -> Path | None:
+def env_figure(runs: list[Run], env: str, references: list[dict] | None = None):
     """Final performance per agent (IQM and 95 % CI, the paper's Fig. 5/6) and the learning curves
-    (IQM line and CI band per agent, Fig. 7) of the env's plain runs, one PNG; each of
-    ``references`` (the hand controller's results) is drawn as a dashed line."""
+    (IQM line and CI band per agent, Fig. 7) of the env's plain runs, one colour per agent in all
+    four panels; each of ``references`` (the hand controller's results) is a dashed line."""
     from matplotlib.figure import Figure
 
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["curve"]]
@@ -266,21 +266,22 @@ def plot_env(runs: list[Run], env: str, path: Path, references: list[dict] | Non
     axes = figure.subplots(2, 2)
     for column, (key, label) in enumerate(metrics):
         bars, curves = axes[0][column], axes[1][column]
-        names, estimates, errors = [], [], []
+        names = []  # the agents with a final evaluation (an unfinished run has a curve only)
         for index, (run, label_of_run) in enumerate(zip(plain, labels, strict=True)):
+            colour = f"C{index}"
             agg = run.summary["aggregate"].get(key)
             if agg:
+                error = [[agg["estimate"] - agg["low"]], [agg["high"] - agg["estimate"]]]
+                bars.errorbar(agg["estimate"], len(names), xerr=error, fmt="o", capsize=4, color=colour)
                 names.append(label_of_run)
-                estimates.append(agg["estimate"])
-                errors.append([agg["estimate"] - agg["low"], agg["high"] - agg["estimate"]])
             points = [p for p in run.summary["curve"] if key in p]
             steps = [p["step"] for p in points]
-            colour = f"C{index}"
-            curves.plot(steps, [p[key]["estimate"] for p in points], color=colour, label=label_of_run)
+            # markers: an unfinished run's one-point curve shows too
+            curves.plot(steps, [p[key]["estimate"] for p in points], color=colour, label=label_of_run,
+                        marker="o", markersize=3)  # fmt: skip
             curves.fill_between(steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
                                 color=colour, alpha=0.2, linewidth=0)  # fmt: skip
         if names:
-            bars.errorbar(estimates, range(len(names)), xerr=np.array(errors).T, fmt="o", capsize=4)
             bars.set_yticks(range(len(names)), names)
         for reference in references or []:
             name = yardstick_name(env, reference["target_speed"])
@@ -294,8 +295,7 @@ def plot_env(runs: list[Run], env: str, path: Path, references: list[dict] | Non
         bars.grid(alpha=0.3)
     axes[1][0].legend(fontsize="small")
     figure.suptitle(env)
-    figure.savefig(path, dpi=110)
-    return path
+    return figure
 
 
 def plot_pairs(runs: list[Run], env: str, path: Path, references: list[dict] | None = None) -> Path | None:
@@ -320,8 +320,8 @@ def plot_pairs(runs: list[Run], env: str, path: Path, references: list[dict] | N
                 points = [p for p in run.summary["curve"] if key in p]
                 steps = [p["step"] for p in points]
                 seeds = len(run.summary["curve"][0][key]["per_seed"]) if points else 0
-                ax.plot(steps, [p[key]["estimate"] for p in points], color=colour,
-                        label=f"{run.cfg.algo} ({seeds} seeds)")  # fmt: skip
+                ax.plot(steps, [p[key]["estimate"] for p in points], color=colour, marker="o",
+                        markersize=3, label=f"{run.cfg.algo} ({seeds} seeds)")  # fmt: skip
                 ax.fill_between(steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
                                 color=colour, alpha=0.2, linewidth=0)  # fmt: skip
             for reference in references or []:
@@ -409,9 +409,10 @@ def _write_report(
         (out / f"results_{env}.md").write_text(markdown_table(rows) + "\n")
         (out / f"results_{env}.csv").write_text(csv_table(rows))
         lines += [markdown_table(rows), ""]
-        figure = plot_env(runs, env, out / f"{env}.png", references)
+        figure = env_figure(runs, env, references)
         if figure is not None:
-            lines += [f"![{env}]({figure.name})", ""]
+            figure.savefig(out / f"{env}.png", dpi=110)
+            lines += [f"![{env}]({env}.png)", ""]
         if scenario(env).multi_agent:  # the paper's Fig. 7: learning curves of each pair
             pairs = plot_pairs(runs, env, out / f"{env}_pairs.png", references)
             if pairs is not None:
