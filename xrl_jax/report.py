@@ -249,13 +249,27 @@ def improvements(
     return out
 
 
+def _plain_runs(runs: list[Run], env: str) -> list[Run]:
+    """The env's runs that are not sweeps and have a learning curve: the ones the figures draw."""
+    return [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["curve"]]
+
+
+def _draw_curve(ax, run: Run, key: str, colour: str, label: str) -> None:
+    """``run``'s curve of ``key``: IQM line, 95 % CI band, markers (a one-point curve shows too)."""
+    points = [p for p in run.summary["curve"] if key in p]
+    steps = [p["step"] for p in points]
+    ax.plot(steps, [p[key]["estimate"] for p in points], color=colour, marker="o", markersize=3, label=label)
+    ax.fill_between(steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
+                    color=colour, alpha=0.2, linewidth=0)  # fmt: skip
+
+
 def env_figure(runs: list[Run], env: str, references: list[dict] | None = None):
     """Final performance per agent (IQM and 95 % CI, the paper's Fig. 5/6) and the learning curves
     (IQM line and CI band per agent, Fig. 7) of the env's plain runs, one colour per agent in all
     four panels; each of ``references`` (the hand controller's results) is a dashed line."""
     from matplotlib.figure import Figure
 
-    plain = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["curve"]]
+    plain = _plain_runs(runs, env)
     if not plain:
         return None
     metrics = table_metrics(env)[:2]
@@ -274,13 +288,7 @@ def env_figure(runs: list[Run], env: str, references: list[dict] | None = None):
                 error = [[agg["estimate"] - agg["low"]], [agg["high"] - agg["estimate"]]]
                 bars.errorbar(agg["estimate"], len(names), xerr=error, fmt="o", capsize=4, color=colour)
                 names.append(label_of_run)
-            points = [p for p in run.summary["curve"] if key in p]
-            steps = [p["step"] for p in points]
-            # markers: an unfinished run's one-point curve shows too
-            curves.plot(steps, [p[key]["estimate"] for p in points], color=colour, label=label_of_run,
-                        marker="o", markersize=3)  # fmt: skip
-            curves.fill_between(steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
-                                color=colour, alpha=0.2, linewidth=0)  # fmt: skip
+            _draw_curve(curves, run, key, colour, label_of_run)
         if names:
             bars.set_yticks(range(len(names)), names)
         for reference in references or []:
@@ -298,14 +306,14 @@ def env_figure(runs: list[Run], env: str, references: list[dict] | None = None):
     return figure
 
 
-def plot_pairs(runs: list[Run], env: str, path: Path, references: list[dict] | None = None) -> Path | None:
+def pairs_figure(runs: list[Run], env: str, references: list[dict] | None = None):
     """The paper's Fig. 7 layout: one row per pair of an explainable agent and its baseline (XSAC
     against SAC, XDSAC against DSAC), one column per figure metric (on the Intersection, completed
     trips and early terminations), each run's learning curve as IQM with its 95 % CI band, and the
     yardstick of ``references`` as a dashed line. None if no pair has a curve."""
     from matplotlib.figure import Figure
 
-    plain = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["curve"]]
+    plain = _plain_runs(runs, env)
     pairs = [(x, y) for x in plain for y in plain
              if BASELINES.get(x.cfg.algo) == y.cfg.algo and x.cfg.preset == y.cfg.preset]  # fmt: skip
     if not pairs:
@@ -317,13 +325,9 @@ def plot_pairs(runs: list[Run], env: str, path: Path, references: list[dict] | N
         for column, (key, label) in enumerate(metrics):
             ax = axes[row][column]
             for colour, run in zip(("C0", "C3"), pair, strict=True):
-                points = [p for p in run.summary["curve"] if key in p]
-                steps = [p["step"] for p in points]
-                seeds = len(run.summary["curve"][0][key]["per_seed"]) if points else 0
-                ax.plot(steps, [p[key]["estimate"] for p in points], color=colour, marker="o",
-                        markersize=3, label=f"{run.cfg.algo} ({seeds} seeds)")  # fmt: skip
-                ax.fill_between(steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
-                                color=colour, alpha=0.2, linewidth=0)  # fmt: skip
+                first = next((p for p in run.summary["curve"] if key in p), None)
+                seeds = len(first[key]["per_seed"]) if first else 0
+                _draw_curve(ax, run, key, colour, f"{run.cfg.algo} ({seeds} seeds)")
             for reference in references or []:
                 ax.axhline(reference[key], color="black", linestyle="--", linewidth=1,
                            label=yardstick_name(env, reference["target_speed"]))  # fmt: skip
@@ -333,8 +337,7 @@ def plot_pairs(runs: list[Run], env: str, path: Path, references: list[dict] | N
             ax.grid(alpha=0.3)
             ax.legend(fontsize="small")
     figure.suptitle(f"{env}: each explainable agent against its baseline")
-    figure.savefig(path, dpi=110)
-    return path
+    return figure
 
 
 EARLY_FRACTION = 0.25  # "early stages of training" (Fig. 7): the evaluation nearest a quarter of the run
@@ -414,9 +417,10 @@ def _write_report(
             figure.savefig(out / f"{env}.png", dpi=110)
             lines += [f"![{env}]({env}.png)", ""]
         if scenario(env).multi_agent:  # the paper's Fig. 7: learning curves of each pair
-            pairs = plot_pairs(runs, env, out / f"{env}_pairs.png", references)
+            pairs = pairs_figure(runs, env, references)
             if pairs is not None:
-                lines += [f"![{env}: pairs]({pairs.name})", ""]
+                pairs.savefig(out / f"{env}_pairs.png", dpi=110)
+                lines += [f"![{env}: pairs]({env}_pairs.png)", ""]
         found = improvements(runs, env, early_fraction=early_fraction)
         all_improvements += found
         labels = dict(summary_metrics(env))
