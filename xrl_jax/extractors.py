@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from xrl_jax import sets
+from xrl_jax.trig import cos_pi, sin_pi
 
 Array = jax.Array
 Observation = Mapping[str, Array]
@@ -124,9 +125,9 @@ def positional_encoding(values: Array, num_freqs: int = 4, include_input: bool =
     giving (2F + 1)·D features (9·D for the default F = 4).
     """
     values = jnp.asarray(values)
-    scales = jnp.pi * 2.0 ** jnp.arange(num_freqs, dtype=values.dtype)
-    angles = scales[:, None] * values[..., None, :]  # (..., F, D)
-    rows = [jnp.cos(angles), jnp.sin(angles)]
+    scales = 2.0 ** jnp.arange(num_freqs, dtype=values.dtype)
+    half_turns = scales[:, None] * values[..., None, :]  # (..., F, D), angles in units of π
+    rows = [cos_pi(half_turns), sin_pi(half_turns)]
     if include_input:
         rows.append(values[..., None, :])
     stacked = jnp.concatenate(rows, axis=-2)
@@ -181,7 +182,7 @@ class FourierFeatures(nn.Module):
             bias_init=uniform_symmetric_init,
             name="linear",
         )(x)
-        return jnp.sin(jnp.pi * projected)
+        return sin_pi(projected)
 
 
 class ObjectStateDense(nn.Module):
