@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # Bottom-up; a part may import from the layers before its own, never from its own layer or above.
 LAYERS = [
     {"envs", "config"},
-    {"stats", "sets", "checkpoint", "interrupts", "resources", "buffer", "tracks", "custom_envs"},
+    {"stats", "sets", "trig", "checkpoint", "interrupts", "resources", "buffer", "tracks", "custom_envs"},
     {"distributions", "extractors"},
     {"losses", "actors", "critics"},
     {"action_spaces", "policies"},
