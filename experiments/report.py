@@ -10,9 +10,10 @@ run with its baseline (Fig. 8), and P(explainable agent > its baseline) with its
 early in the run (Fig. 7). --controller adds each scenario's yardstick on the same evaluation: the
 hand-written centre-line driver on the racing tracks, the scripted driver on the Intersection.
 Folders that are still running or lost a seed are reported as far as they go, and marked
-incomplete; a folder given twice (under any path) is reported once, with a note. DIR/runs keeps a
-copy of what was read of each run (config and evaluations), so that `report.py DIR/runs/* NEW_RUN_DIR
---out DIR` adds a run after the original folders are gone. Runs of one protocol from different base
+incomplete; a folder given twice (under any path), or also as DIR/runs's copy of its records, is
+reported once, with a note. DIR/runs keeps a copy of what was read of each run (config and
+evaluations), so that `report.py DIR/runs/* NEW_RUN_DIR --out DIR` adds a run after the original
+folders are gone. Runs of one protocol from different base
 seeds (`--set seed=S`: a protocol's seeds trained a few at a time) are pooled into one row.
 """
 

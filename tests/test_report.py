@@ -182,6 +182,29 @@ def test_report_cli_reports_a_folder_given_twice_once_and_says_so(folders, tmp_p
     assert [row.split(" | ")[0] for row in rows] == ["| sac", "| xsac"]
 
 
+@pytest.mark.parametrize("copy_first", [True, False])
+def test_report_reads_a_run_given_also_as_a_copy_of_its_records_once(folders, tmp_path, capsys, copy_first):
+    """A run folder and a report's copy of its records (``runs/<name>``) are one run, not two rows of
+    the same seeds (docs/results_quick's Intersection table once listed DSAC twice so). The copy made
+    before the run's last evaluation has fewer lines, so the run folder is read, in either order."""
+    cli = load_script("report", "report_cli")
+    sac = folders["sac"]
+    early = tmp_path / "early"
+    write_report([sac], early)
+    copy = early / "runs" / sac.name
+    last_seed = sorted((copy / "eval").glob("*.jsonl"))[-1]
+    last_seed.write_text(last_seed.read_text().splitlines(keepends=True)[0])  # before its final evaluation
+    sources = [copy, sac] if copy_first else [sac, copy]
+    out = tmp_path / "report"
+    assert cli.main([*map(str, sources), str(folders["xsac"]), "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    same = f"{copy} holds the same run as {sac} (its records); reported once"
+    assert err == [f"report.py: note: {same}"]
+    rows = (out / "results_tracking.md").read_text().splitlines()[2:]
+    assert [row.split(" | ")[0] for row in rows] == ["| sac", "| xsac"]
+    assert "| complete |" in rows[0]  # read from the run folder, which has every evaluation
+
+
 def test_write_report_reads_a_folder_without_any_evaluation(tmp_path):
     """A run that has only just started: no eval file yet. It is listed, incomplete, nothing fails."""
     folder = fake_run(tmp_path / "fresh", "tracking", "xdsac", "quick", [1.0, 2.0], missing=(0, 1))
@@ -293,9 +316,10 @@ def test_a_report_is_written_again_from_its_kept_records_with_a_run_added(folder
 
 def test_kept_records_of_two_runs_with_one_folder_name_are_both_kept(tmp_path):
     """Two machines' folders of one name (a/tracking-sac, b/tracking-sac) are both reported; their
-    copies are kept side by side, the second with a suffix."""
-    runs = [fake_run(tmp_path / where / "tracking-sac", "tracking", "sac", "quick", [1.0, 2.0])
-            for where in ("a", "b")]  # fmt: skip
+    copies are kept side by side, the second with a suffix. (One command at one commit: the same
+    config.json; the runs tell apart by their evaluations.)"""
+    runs = [fake_run(tmp_path / where / "tracking-sac", "tracking", "sac", "quick", returns)
+            for where, returns in (("a", [1.0, 2.0]), ("b", [1.5, 2.5]))]  # fmt: skip
     out = tmp_path / "report"
     write_report(runs, out)
     assert sorted(p.name for p in (out / "runs").iterdir()) == ["tracking-sac", "tracking-sac-2"]

@@ -23,7 +23,7 @@ from xrl_jax import stats
 from xrl_jax.config import scenario
 from xrl_jax.evaluation import evaluate_yardstick
 from xrl_jax.runs.folder import RunFolderError, read_run_config
-from xrl_jax.runs.kept import keep_records, protocol_groups
+from xrl_jax.runs.kept import distinct_runs, keep_records, protocol_groups
 from xrl_jax.runs.plots import format_step_axis, plot_sweep
 from xrl_jax.runs.summary import summarize_pooled, summarize_run, summary_metrics
 from xrl_jax.runs.tables import curve_label
@@ -358,12 +358,13 @@ def write_report(
     ``controller`` or a ``controller_speed`` (m/s; None: each driver's default), the tables and
     figures also show each scenario's yardstick driven on the runs' evaluation (``controller.json``):
     the hand controller on the racing tracks, the scripted driver on the Intersection. A folder given
-    twice is reported once (``note`` takes a line about it); :class:`ReportError` (one line) when a
-    folder is not a run or ``out`` cannot be written."""
+    twice, or also as a report's copy of its records, is reported once (``note`` takes a line about
+    it; :func:`~xrl_jax.runs.kept.distinct_runs`); :class:`ReportError` (one line) when a folder is not
+    a run or ``out`` cannot be written."""
     controller = controller or controller_speed is not None
     out = Path(out)
     _make_report_folder(out)
-    runs = read_runs(distinct_folders(folders, note), note)
+    runs = read_runs(distinct_runs(folders, note), note)
     try:
         keep_records([folder for run in runs for folder in run.folders], out)
         return _write_report(runs, out, controller_speed, controller, early_fraction)
@@ -378,18 +379,6 @@ def _make_report_folder(out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ReportError(f"cannot create the report folder --out {out}: {err.strerror or err}") from None
-
-
-def distinct_folders(folders: list[str | Path], note=None) -> list[Path]:
-    """``folders`` with each results folder once (the same folder under two names counts once);
-    ``note`` takes one line per folder left out."""
-    seen: dict[Path, Path] = {}
-    for folder in map(Path, folders):
-        first = seen.setdefault(folder.resolve(), folder)
-        if first is not folder and note is not None:
-            again = "given twice" if first == folder else f"the same folder as {first}"
-            note(f"{folder} is {again}; reported once")
-    return list(seen.values())
 
 
 def _write_report(

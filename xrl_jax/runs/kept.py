@@ -1,8 +1,9 @@
-"""What a report keeps of its runs, and which runs are one protocol.
+"""What a report keeps of its runs, which folders hold one run, and which runs are one protocol.
 
 A report copies the records it reads (``config.json``, ``eval/``) into ``runs/`` beside it, so that it
-can be written again, or with a run added, after the run folders are gone; and it pools runs that
-differ only in how they were carried out, each from its own base seed, into one row.
+can be written again, or with a run added, after the run folders are gone; it reads a run given both
+as its folder and as such a copy once; and it pools runs that differ only in how they were carried
+out, each from its own base seed, into one row.
 """
 
 from __future__ import annotations
@@ -23,6 +24,66 @@ EXECUTION_SETTINGS = frozenset(
     {"seed", "num_seeds", "max_group_size", "memory_budget_gb", "checkpoint_minutes", "num_devices",
      "checkpoint_interval"}
 )  # fmt: skip
+
+
+def distinct_runs(folders: list[str | Path], note=None) -> list[Path]:
+    """``folders`` with each run once, in the order given; ``note`` takes a line per folder left out.
+
+    One folder under two names (a link, another path) counts once, and so does a run given both as
+    its folder and as a report's copy of its records: the copy has the run's ``config.json``, byte for
+    byte, and its evaluation lines, less their per-episode values, up to when it was made. Of the two,
+    the one with more evaluations stays (the run may have gone on); on a tie, the first. Two runs of
+    one command at one commit (two machines) share a ``config.json`` but not their evaluations.
+    """
+    chosen: list[Path] = []
+    by_path: dict[Path, Path] = {}
+    same_config: dict[bytes, list[int]] = {}  # config.json contents -> indices in ``chosen``
+    for folder in map(Path, folders):
+        first = by_path.setdefault(folder.resolve(), folder)
+        if first is not folder:
+            again = "given twice" if first == folder else f"the same folder as {first}"
+            _note(note, f"{folder} is {again}; reported once")
+            continue
+        contents = _config_bytes(folder)  # None: not a run, which reading the runs reports
+        earlier = same_config.setdefault(contents, []) if contents is not None else []
+        history = _evaluations(folder) if earlier else {}
+        index = next((i for i in earlier if _one_history(history, _evaluations(chosen[i]))), None)
+        if index is None:
+            earlier.append(len(chosen))
+            chosen.append(folder)
+            continue
+        other = chosen[index]
+        longer = sum(map(len, history.values())) > sum(map(len, _evaluations(other).values()))
+        stays, leaves = (folder, other) if longer else (other, folder)
+        chosen[index] = stays
+        _note(note, f"{leaves} holds the same run as {stays} (its records); reported once")
+    return chosen
+
+
+def _config_bytes(folder: Path) -> bytes | None:
+    try:
+        return run_paths(folder)["config"].read_bytes()
+    except OSError:  # not a run, or unreadable: reading its runs says so in one line
+        return None
+
+
+def _evaluations(folder: Path) -> dict[str, list[dict]]:
+    """Each member's evaluation lines as a report keeps them (without :data:`RECORD_DROPS`)."""
+    return {
+        lines.name: [{k: v for k, v in row.items() if k not in RECORD_DROPS} for row in read_rows(lines)]
+        for lines in sorted(run_paths(folder)["eval"].glob("*.jsonl"))
+    }
+
+
+def _one_history(a: dict[str, list[dict]], b: dict[str, list[dict]]) -> bool:
+    """Every member's evaluations in one are the start of its evaluations in the other."""
+    return all(a.get(name, [])[: len(b.get(name, []))] == b.get(name, [])[: len(a.get(name, []))]
+               for name in {*a, *b})  # fmt: skip
+
+
+def _note(note, line: str) -> None:
+    if note is not None:
+        note(line)
 
 
 def protocol(cfg) -> str:
@@ -78,9 +139,8 @@ def keep_records(folders: list[Path], out: Path) -> None:
         source, copy = run_paths(folder), run_paths(staging / name)
         copy["eval"].mkdir(parents=True)
         shutil.copyfile(source["config"], copy["config"])
-        for lines in sorted(source["eval"].glob("*.jsonl")):
-            rows = [{k: v for k, v in row.items() if k not in RECORD_DROPS} for row in read_rows(lines)]
-            (copy["eval"] / lines.name).write_text("".join(json.dumps(row) + "\n" for row in rows))
+        for name, rows in _evaluations(folder).items():
+            (copy["eval"] / name).write_text("".join(json.dumps(row) + "\n" for row in rows))
     if kept.exists():  # swapped, never deleted first: the old copies may be this report's sources
         kept.rename(former)
     staging.rename(kept)
