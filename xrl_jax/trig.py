@@ -1,11 +1,11 @@
 """``sin(π x)`` and ``cos(π x)`` from vectorisable arithmetic.
 
-The Learned Fourier Features and the positional encodings of every Deep Set and mixture actor take
-sines of π times their inputs. XLA's CPU backend evaluates ``sin`` and ``cos`` one element at a time
-(a libm call with its full range reduction), and on the quick Country Road preset those calls were
-about half of a DSAC update's time. Here the argument is reduced exactly in units of π (``x - 2 n`` is
-exact in floating point) and the sine of the remaining quarter period is a truncated Taylor series,
-so the whole function is additions and multiplications that XLA fuses and vectorises on any backend.
+The Learned Fourier Features of every Deep Set and the positional encodings of Tracking's MLP agents
+take sines of π times their inputs. XLA's CPU backend evaluates ``sin`` and ``cos`` one element at a
+time (a libm call with its full range reduction), and on the quick Country Road preset those calls
+were about half of a DSAC update's time. Here the argument is reduced exactly in units of π (``x - 2 n``
+is exact in floating point) and folded to ``|t| ≤ 1/2``, whose sine is a truncated Taylor series, so
+the whole function is additions and multiplications that XLA fuses and vectorises on any backend.
 It is also more accurate than ``jnp.sin(jnp.pi * x)``, which first rounds ``π x``.
 
 Accuracy: on the reduced argument ``|t| ≤ 1/2`` the first omitted term of the series is at most
