@@ -180,6 +180,53 @@ def test_a_process_that_dies_mid_run_ends_the_others_in_one_line(tmp_path):
     assert f"start every process again with --resume {out}" in lines[0]
 
 
+LATE_PROCESS = """
+import os, sys, time
+sys.path.insert(0, "experiments")
+import run
+from xrl_jax import train
+from xrl_jax.train import hosts, start
+
+checked = start.prepare_run
+
+def late(*args, **kwargs):  # process 1 looks at the folder 3 s after process 0
+    time.sleep(3)
+    return checked(*args, **kwargs)
+
+def first_file(*args, **kwargs):  # process 0 writes into the folder as soon as it has it
+    prepared = checked(*args, **kwargs)
+    (prepared.out / "first_file").write_text("written by process 0")  # a file that counts as results
+    return prepared
+
+def meet(*args, **kwargs):
+    hosts.gathered(0)
+    os._exit(0)
+
+start.prepare_run = late if sys.argv[1] == "1" else first_file
+train.train = meet
+sys.exit(run.main(sys.argv[2:]))
+"""
+
+
+def test_a_process_that_checks_the_new_folder_late_still_joins_the_run(tmp_path):
+    """Every process refuses a --out that holds results, but only as the folder was before the job
+    wrote anything: a process slower to look (here by 3 s) must not find the first files of a faster
+    one and refuse the job's own folder (it did, now and then, on a loaded machine)."""
+    out = tmp_path / "job"
+    job = ["--preset", "smoke", "--quiet", "--out", str(out), "--coordinator", f"127.0.0.1:{_free_port()}",
+           "--num-processes", "2"]  # fmt: skip
+    pipes = {"cwd": ROOT, "env": _env(tmp_path / "cache", 1), "stdout": subprocess.PIPE,
+             "stderr": subprocess.PIPE, "text": True}  # fmt: skip
+    procs = [
+        subprocess.Popen([sys.executable, "-c", LATE_PROCESS, str(i), *job, "--process-id", str(i)], **pipes)
+        for i in range(2)
+    ]
+    (_, err_0), (_, err_1) = (p.communicate(timeout=120) for p in procs)
+    assert procs[1].returncode == 0, err_1
+    assert procs[0].returncode == 0, err_0
+    assert (out / "first_file").read_text() == "written by process 0"
+
+
 def test_a_sweep_point_equals_a_plain_run_of_its_values(run, one_device, tmp_path):
     """Same seeds, same values, same member count per device: bit-identical records, also in
     the sweep's per-point summary (a member's stream depends on its seed and point alone)."""
