@@ -135,6 +135,21 @@ def test_a_job_whose_other_processes_never_join_fails_in_one_line_within_its_tim
     assert elapsed < 3 + JOIN_GRACE_S, elapsed  # JAX's own deadline (and abort) comes later
 
 
+def _two_process_smoke_job(script: str, out: Path, cache: Path) -> list[tuple[int, str]]:
+    """Run ``script`` (which ends in ``run.main``) as processes 0 and 1 of a smoke job writing to
+    ``out``, one CPU device each; ``(exit status, stderr)`` per process."""
+    job = ["--preset", "smoke", "--quiet", "--out", str(out), "--coordinator", f"127.0.0.1:{_free_port()}",
+           "--num-processes", "2"]  # fmt: skip
+    pipes = {"cwd": ROOT, "env": _env(cache, 1), "stdout": subprocess.PIPE, "stderr": subprocess.PIPE,
+             "text": True}  # fmt: skip
+    procs = [
+        subprocess.Popen([sys.executable, "-c", script, str(i), *job, "--process-id", str(i)], **pipes)
+        for i in range(2)
+    ]
+    errs = [p.communicate(timeout=120)[1] for p in procs]
+    return [(p.returncode, err) for p, err in zip(procs, errs, strict=True)]
+
+
 LOSE_A_PROCESS = """
 import os, sys, time
 sys.path.insert(0, "experiments")
@@ -162,20 +177,10 @@ def test_a_process_that_dies_mid_run_ends_the_others_in_one_line(tmp_path):
     saying how to resume. (A loss that only JAX's missed heartbeats reveal, e.g. before the job's
     first collective has connected the processes, still ends in XLA's abort; see run.py --help.)"""
     out = tmp_path / "job"
-    job = ["--preset", "smoke", "--quiet", "--out", str(out), "--coordinator", f"127.0.0.1:{_free_port()}",
-           "--num-processes", "2"]  # fmt: skip
-    env = _env(tmp_path / "cache", 1)
-    pipes = {"cwd": ROOT, "env": env, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", LOSE_A_PROCESS, str(i), *job, "--process-id", str(i)], **pipes
-        )
-        for i in range(2)
-    ]
-    (_, err), (_, err_1) = (p.communicate(timeout=120) for p in procs)
-    assert procs[1].returncode == 9, err_1
+    (status, err), (status_1, err_1) = _two_process_smoke_job(LOSE_A_PROCESS, out, tmp_path / "cache")
+    assert status_1 == 9, err_1
     lines = [line for line in err.strip().splitlines() if not line.startswith("[Gloo]")]  # Gloo's own note
-    assert procs[0].returncode == 1 and len(lines) == 1, err
+    assert status == 1 and len(lines) == 1, err
     assert lines[0].startswith("run.py: error: process 0 of 2 lost another process of the job (")
     assert f"start every process again with --resume {out}" in lines[0]
 
@@ -213,17 +218,9 @@ def test_a_process_that_checks_the_new_folder_late_still_joins_the_run(tmp_path)
     wrote anything: a process slower to look (here by 3 s) must not find the first files of a faster
     one and refuse the job's own folder (it did, now and then, on a loaded machine)."""
     out = tmp_path / "job"
-    job = ["--preset", "smoke", "--quiet", "--out", str(out), "--coordinator", f"127.0.0.1:{_free_port()}",
-           "--num-processes", "2"]  # fmt: skip
-    pipes = {"cwd": ROOT, "env": _env(tmp_path / "cache", 1), "stdout": subprocess.PIPE,
-             "stderr": subprocess.PIPE, "text": True}  # fmt: skip
-    procs = [
-        subprocess.Popen([sys.executable, "-c", LATE_PROCESS, str(i), *job, "--process-id", str(i)], **pipes)
-        for i in range(2)
-    ]
-    (_, err_0), (_, err_1) = (p.communicate(timeout=120) for p in procs)
-    assert procs[1].returncode == 0, err_1
-    assert procs[0].returncode == 0, err_0
+    (status_0, err_0), (status_1, err_1) = _two_process_smoke_job(LATE_PROCESS, out, tmp_path / "cache")
+    assert status_1 == 0, err_1
+    assert status_0 == 0, err_0
     assert (out / "first_file").read_text() == "written by process 0"
 
 

@@ -193,8 +193,8 @@ def _new_folder(request: RunRequest, cfg: TrainConfig, results_root: Path) -> Pa
         raise RunFolderError(
             f"results folder {out} already exists; choose another --out or continue it with --resume {out}"
         )
-    # Every process of a job looks before any of them writes: one that looked late would otherwise find
-    # a faster one's first files (its write probe, below) and refuse the job's own folder.
+    # Every process of a job looks before any of them writes: one that looked late could otherwise find
+    # a faster one's first files (e.g. its write probe, below) and refuse the job's own folder.
     hosts.sync("new results folder checked")
     try:
         out.mkdir(parents=True, exist_ok=True)
