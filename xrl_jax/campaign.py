@@ -152,7 +152,7 @@ def plan(
     from xrl_jax.occupancy import load_occupancy, update_cost
     from xrl_jax.resources import format_bytes
     from xrl_jax.runs.folder import read_run_config
-    from xrl_jax.train import get_trainer, plan_memory
+    from xrl_jax.train import get_trainer, plan_memory, scenario_kind
 
     occupancy = load_occupancy()
     rows = []
@@ -174,7 +174,7 @@ def plan(
         updates = max(cfg.total_steps - cfg.warmup_steps, 0) * cfg.num_members
         updates_left = sum(max(cfg.total_steps - max(step, cfg.warmup_steps), 0) for step in done)
         # On the Intersection one update per acting vehicle: as many as measured per env step.
-        per_step = occupancy["intersection"]["acting_vehicles_per_env_step"] if cfg.multi_agent else 1
+        per_step = scenario_kind(cfg).updates_per_env_step(cfg, occupancy)
         total, left = flops * per_step * updates, flops * per_step * updates_left
         rows.append(
             {

@@ -160,7 +160,7 @@ def bench_train(
     cfg = train.resolve_config(env, algo, preset_name, num_seeds=seeds, total_steps=steps, overrides=sets)
     cfg = cfg.replace(buffer_size=max(cfg.batch_size, min(cfg.buffer_size, steps)))
     start = time.perf_counter()
-    trainer = train.make_train(cfg, devices=jax.devices()[:devices])
+    trainer = train.make_trainer(cfg, devices=jax.devices()[:devices])
     state = jax.block_until_ready(trainer.init(0, range(seeds)))
     setup_s = time.perf_counter() - start
     (state, metrics), first_chunk_s = seconds_of(lambda: trainer.chunk(state, np.int32(0)))  # mostly warm-up

@@ -124,7 +124,7 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
             "curve": [],  # likewise: sweep.points[i].curve
             "sweep": {"fields": [name for name, _ in cfg.sweep], "points": points},
         }
-    if cfg.on_tracks:
+    if cfg.scenario.on_tracks:
         summary["training_tracks"] = _training_tracks(out, cfg)
     return summary
 
