@@ -149,7 +149,7 @@ def plan(
     """One row per run: its status, members, memory and groups on this machine, FLOPs and device-hours,
     each for the configuration that will run: a started or finished run's own (``config.json``), a new
     one's from the preset, its own settings and the campaign's ``sets``."""
-    from xrl_jax.occupancy import load_occupancy, update_cost
+    from xrl_jax.benchmarks.occupancy import load_occupancy, update_cost
     from xrl_jax.resources import format_bytes
     from xrl_jax.runs.folder import read_run_config
     from xrl_jax.train import get_trainer, plan_memory, scenario_kind
@@ -163,7 +163,8 @@ def plan(
         trainer = get_trainer(cfg)
         memory = plan_memory(trainer, cfg)
         # FLOPs as they run: the packed update, or every slot when a batch overflows (by the measured
-        # occupancy of docs/set_occupancy.json, members sharing their branches as on one device).
+        # occupancy of xrl_jax/benchmarks/set_occupancy.json, members sharing their branches as on one
+        # device).
         cost = update_cost(trainer.agent, cfg.batch_size, cfg.num_members, occupancy)
         flops = cost["expected"]
         if status == "started":

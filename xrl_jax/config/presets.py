@@ -15,10 +15,10 @@ from xrl_jax.config.scenarios import scenario
 
 INTERSECTION_ALPHA = 0.015  # fixed entropy coefficient of all four intersection agents (§8.7 there)
 # Rows reserved per set for the present objects (xrl_jax.sets). Country Road's sets hold 28.9 cones on
-# average (p99 47 of 100 slots, docs/set_occupancy.json); the Intersection's training buffer held 1.48
-# other vehicles per observation (sd 0.87) after 3,000 quick-preset steps, three times the random-driver
-# rollouts of docs/set_occupancy.json. A batch of 128 sets then leaves over 6 standard deviations of
-# its total spare; docs/performance.md shows the choice.
+# average (p99 47 of 100 slots, xrl_jax/benchmarks/set_occupancy.json); the Intersection's training
+# buffer held 1.48 other vehicles per observation (sd 0.87) after 3,000 quick-preset steps, three times
+# the random-driver rollouts of set_occupancy.json. A batch of 128 sets then leaves over 6 standard
+# deviations of its total spare; docs/performance.md shows the choice.
 COUNTRY_ROAD_PACKED_ROWS = 32.0
 INTERSECTION_PACKED_ROWS = 2.0
 
