@@ -48,6 +48,7 @@ QUICK_SIZES = {"actor_width": 64, "critic_width": 64, "fe_width": 32, "actor_dep
 # runs. fe_width, which only a Deep Set uses, doubles along.
 QUICK_TRACKING_WIDE_SIZES = {"actor_width": 128, "critic_width": 128, "fe_width": 128}
 QUICK_TRACKING_WIDE_ALGOS = ("sac", "dsac", "xsac")
+QUICK_WIDE = {("tracking", algo): QUICK_TRACKING_WIDE_SIZES for algo in QUICK_TRACKING_WIDE_ALGOS}
 SMOKE_SIZES = dict(actor_width=16, actor_depth=2, critic_width=16, critic_depth=1, fe_width=16, pe_freqs=2)
 
 # Train-loop settings by (preset, scenario kind: Scenario.kind), refined by (preset, env) in
@@ -167,8 +168,7 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
     if name == "quick":
         agent = agent.replace(**QUICK_SIZES)
         agent = agent.replace(**QUICK_OPTIMISATION.get(env, QUICK_RACING_OPTIMISATION))
-        if env == "tracking" and algo in QUICK_TRACKING_WIDE_ALGOS:
-            agent = agent.replace(**QUICK_TRACKING_WIDE_SIZES)
+        agent = agent.replace(**QUICK_WIDE.get((env, algo), {}))
     elif name == "smoke":
         agent = agent.replace(**SMOKE_SIZES)
     return agent

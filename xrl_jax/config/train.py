@@ -83,8 +83,8 @@ class TrainConfig:
         """One transition per env and step keeps each observation once ("compact", truncations
         dropped); packed transitions (several agent slots per env, a varying number acting per step)
         and kept truncations store next_obs ("explicit")."""
-        one_per_env = self.scenario.agent_slots == 1
-        return "compact" if self.agent.truncation == "drop" and one_per_env else "explicit"
+        compact = self.agent.truncation == "drop" and self.scenario.agent_slots == 1
+        return "compact" if compact else "explicit"
 
     @property
     def chunk_vector_steps(self) -> int:
@@ -239,8 +239,8 @@ def _validate_train(cfg: TrainConfig) -> None:
         f"buffer_size ({cfg.buffer_size}) must be at least batch_size ({cfg.batch_size})",
     )
     _validate_sweep(cfg)
-    slots = cfg.scenario.agent_slots
-    if slots > 1:  # packed transitions: one row per agent
+    if cfg.scenario.agent_slots > 1:  # packed transitions: one row per agent
+        slots = cfg.scenario.agent_slots
         require(
             cfg.buffer_size >= slots * e,
             f"buffer_size ({cfg.buffer_size}) must hold one step of all agents ({slots * e})",

@@ -26,7 +26,7 @@ def hand_controller_evaluation(scenario: str, eval_track_seed: int, episodes: in
     of it, so scoring several speeds costs one compilation. ``scenario`` is ``"tracking"`` or
     ``"country_road"``; the controller drives with continuous actions whichever action space the
     agents had (the tracks and rewards are the same)."""
-    if scenario not in ("tracking", "country_road"):
+    if config.scenario(scenario).yardstick != "hand controller":
         raise ValueError(f"the hand controller drives tracking or country_road, not {scenario!r}")
     env, eval_params = racing_env(scenario, cached_track_bank(eval_track_seed, episodes))
 
