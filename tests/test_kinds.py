@@ -36,6 +36,27 @@ def test_every_preset_has_train_rows_for_every_kind(kind):
         assert (preset, kind) in TRAIN_PRESETS
 
 
+def test_a_new_kind_is_one_class_and_one_registry_entry(monkeypatch):
+    """docs/layout.md's recipe: a ScenarioKind subclass in KINDS, and a scenario naming it, which the
+    presets serve with the single-agent rows until the kind has its own."""
+    import dataclasses
+
+    from xrl_jax.config.presets import preset_train_fields
+    from xrl_jax.config.scenarios import register_scenario, unregister_scenario
+
+    class Platoon(ScenarioKind):
+        name = "platoon"
+        figure = "slots"
+
+    monkeypatch.setitem(KINDS, "platoon", Platoon())
+    register_scenario(dataclasses.replace(scenario("tracking"), name="convoy", kind="platoon"))
+    try:
+        assert scenario_kind("convoy").name == "platoon"
+        assert preset_train_fields("smoke", "convoy") == TRAIN_PRESETS[("smoke", "user_env")]
+    finally:
+        unregister_scenario("convoy")
+
+
 @pytest.mark.parametrize("env", ENVS)
 def test_the_kinds_answers_agree_with_the_scenarios_facts(env):
     """The config (below the trainer) reads the buffer layout and its size check off the scenario's

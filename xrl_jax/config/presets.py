@@ -177,7 +177,8 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
 def preset_train_fields(name: str, env: str) -> dict[str, Any]:
     """The train-loop settings of preset ``name`` on ``env``: its scenario kind's row, refined by the
     env's own where it has one (a user's env: the racing ones, single-agent steps, without their track
-    settings)."""
-    fields = dict(TRAIN_PRESETS[(name, scenario(env).kind)])
+    settings; a kind without rows of its own takes those too)."""
+    kind = scenario(env).kind
+    fields = dict(TRAIN_PRESETS.get((name, kind), TRAIN_PRESETS[(name, "user_env")]))
     fields.update(ENV_TRAIN_PRESETS.get((name, env), {}))  # an env's own row refines its kind's
     return fields
