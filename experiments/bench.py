@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     from xrl_jax import benchmarks as B
-    from xrl_jax.occupancy import rollout_observations
+    from xrl_jax.benchmarks.occupancy import rollout_observations
 
     report: dict = {"machine": B.machine_info(), "command": args.command}
     if args.command == "env":

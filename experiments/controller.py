@@ -64,24 +64,37 @@ def _intersection_table(results: list[dict]) -> list[str]:
     return lines
 
 
+# Per yardstick (the scenario's fact): the heading, the table, and whether the track seed picks its
+# episodes (the Intersection's are fixed).
+YARDSTICK_OUTPUT = {
+    "hand controller": (
+        "hand controller on {env}, {episodes} evaluation tracks (seed {seed})",
+        _racing_table,
+        True,
+    ),
+    "scripted driver": (
+        "scripted driver on the intersection, {episodes} evaluation episodes of 60 s with 8 cars",
+        _intersection_table,
+        False,
+    ),
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from xrl_jax.config import scenario
     from xrl_jax.evaluation import yardstick_evaluation
 
     speeds = args.speeds or [DEFAULT_SPEEDS[args.env]]
     episodes = args.episodes or DEFAULT_EPISODES[args.env]
     score = yardstick_evaluation(args.env, args.eval_track_seed, episodes)
     results = [score(speed) for speed in speeds]
-    if args.env == "intersection":
-        print(f"scripted driver on the intersection, {episodes} evaluation episodes of 60 s with 8 cars")
-        lines = _intersection_table(results)
-    else:
-        print(f"hand controller on {args.env}, {episodes} evaluation tracks (seed {args.eval_track_seed})")
-        lines = _racing_table(results)
-    print("\n".join(lines))
+    heading, table, seeded = YARDSTICK_OUTPUT[scenario(args.env).yardstick]
+    print(heading.format(env=args.env, episodes=episodes, seed=args.eval_track_seed))
+    print("\n".join(table(results)))
     if args.json:
         document = {"env": args.env, "episodes": episodes, "results": results}
-        if args.env != "intersection":
+        if seeded:
             document["eval_track_seed"] = args.eval_track_seed
         Path(args.json).write_text(json.dumps(document, indent=2) + "\n")
         print(f"written: {args.json}")

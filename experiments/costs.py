@@ -2,9 +2,10 @@
 
     python experiments/costs.py                      # table on stdout
     python experiments/costs.py --json               # the same numbers as JSON
-    python experiments/costs.py --measure-occupancy  # re-measure docs/set_occupancy.json (~1 min)
+    python experiments/costs.py --measure-occupancy  # re-measure the set occupancy (~1 min)
 
-What the columns count: xrl_jax/benchmarks/table_one.py; the occupancy: xrl_jax/occupancy.py.
+What the columns count: xrl_jax/benchmarks/table_one.py; the occupancy: xrl_jax/benchmarks/occupancy.py
+and the table it writes beside it, set_occupancy.json.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cli_args import OneLineParser
 
 from xrl_jax.benchmarks import format_table_one, measure_table_one
-from xrl_jax.occupancy import measure_occupancy
+from xrl_jax.benchmarks.occupancy import measure_occupancy
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -27,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--measure-occupancy",
         action="store_true",
-        help="drive every scenario and rewrite docs/set_occupancy.json (present objects per set)",
+        help="drive every scenario and rewrite xrl_jax/benchmarks/set_occupancy.json (objects per set)",
     )
     return parser
 

@@ -51,10 +51,10 @@ def test_register_env_reads_the_layout_off_the_env(example):
         3,
         2,
     )
-    assert facts.actions == "discrete" and facts.max_episode_steps == 40 and facts.custom
-    assert BUILT_IN == ENVS and not any(scenario(name).custom for name in ENVS)
+    assert facts.actions == "discrete" and facts.max_episode_steps == 40 and facts.kind == "user_env"
+    assert BUILT_IN == ENVS and not any(scenario(name).kind == "user_env" for name in ENVS)
     cfg = resolve_config("nearest_goal", "xdsac", "smoke")
-    assert cfg.env_name == "nearest_goal" and not cfg.on_tracks and not cfg.fresh_tracks
+    assert cfg.env_name == "nearest_goal" and not cfg.scenario.on_tracks and not cfg.fresh_tracks
     with pytest.raises(ConfigError, match="discrete actions: train it with dsac or xdsac, not xsac"):
         resolve_config("nearest_goal", "xsac", "smoke")
 

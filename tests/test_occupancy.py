@@ -1,14 +1,18 @@
-"""Measured set occupancy (xrl_jax.occupancy, docs/set_occupancy.json) and the costs counted from it."""
+"""Measured set occupancy (xrl_jax.benchmarks.occupancy and its set_occupancy.json) and the costs
+counted from it."""
 
+import fnmatch
 import itertools
+from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 from network_support import action_size
 
-from xrl_jax import occupancy
+import xrl_jax
 from xrl_jax.agents import make_agent
+from xrl_jax.benchmarks import occupancy
 from xrl_jax.config import preset
 from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
 
@@ -30,6 +34,19 @@ def test_the_measured_table_is_complete_and_consistent():
     assert table["tracking"]["histogram"][-1] == table["tracking"]["observations"]  # always full
     assert 0.3 < table["intersection"]["mean"] < 0.7 and 20 < table["country_road"]["mean"] < 40
     assert 1.0 < table["intersection"]["acting_vehicles_per_env_step"] < 8.0
+
+
+def test_the_table_ships_inside_the_package():
+    """An installed package has no docs/ folder: the table the cost estimates read lies inside the
+    package, and pyproject.toml declares it as package data, so a wheel carries it."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    package = Path(xrl_jax.__file__).resolve().parent
+    path = occupancy.OCCUPANCY_FILE
+    assert path.is_relative_to(package) and path.is_file()
+    pyproject = tomllib.loads((package.parent / "pyproject.toml").read_text())
+    declared = pyproject["tool"]["setuptools"]["package-data"]
+    owner = ".".join(path.parent.relative_to(package.parent).parts)
+    assert any(fnmatch.fnmatch(path.name, pattern) for pattern in declared.get(owner, ()))
 
 
 def test_overflow_probability_counts_what_it_says():
@@ -58,7 +75,7 @@ def test_update_cost_counts_the_packed_update_and_its_fallback():
         agent = make_agent(preset("smoke", "country_road", algo), dummy_observation(shape), action_size(algo))
         cost = occupancy.update_cost(agent, 16)
         assert cost["packed"] < 0.6 * cost["dense"]  # 512 of 1,600 slot rows per batch
-        # A batch of 16 sets averages 462 cones, sd 22 (docs/set_occupancy.json): 512 rows are 2.3 sd
+        # A batch of 16 sets averages 462 cones, sd 22 (set_occupancy.json): 512 rows are 2.3 sd
         # above it, so a few per cent of updates fall back; the training batch of 128 almost never does.
         assert 0.001 < cost["fallback_probability"] < 0.1
         assert 0 < occupancy.fallback_probability(agent, 128) < 1e-6

@@ -562,4 +562,4 @@ def test_the_scenario_table_describes_each_envs_observation(road, tracking):
         assert set(space.spaces) == {"state", facts.set_key}, name
         assert space[facts.set_key].shape == (facts.num_objects, facts.object_features), name
         assert space["state"].shape == (facts.state_dim,), name
-        assert facts.multi_agent == (name == "intersection")
+        assert facts.agent_slots == getattr(env, "num_agents", 1), name

@@ -20,7 +20,7 @@ LAYERS = [
     {"action_spaces", "policies"},
     {"networks", "agent_state"},
     {"agents"},
-    {"evaluation", "occupancy"},
+    {"evaluation"},
     {"runs"},  # the results folder: the trainer writes it
     {"train"},
     {"report", "explain", "benchmarks"},

@@ -7,9 +7,10 @@ import pytest
 from train_support import prepare_cache
 
 from xrl_jax import train as T
-from xrl_jax.config import AgentConfig, scenario
+from xrl_jax.config import AgentConfig
 from xrl_jax.train import ConfigError, MemoryPlanError, TrainConfig, parse_overrides, resolve_config
 from xrl_jax.train.episodes import window_add, window_init, window_means
+from xrl_jax.train.kinds import scenario_kind
 from xrl_jax.train.memory import tree_bytes
 
 # ---------------------------------------------------------------------------------------------
@@ -125,7 +126,7 @@ def test_episode_window_keeps_the_last_hundred_finished_episodes():
         value = jnp.array([step, 1000 + step, 2000 + step], jnp.float32)
         window = add(window, done, value, jnp.ones(3, jnp.int32), done & (value > 2000), jnp.zeros(3))
         returns += [float(v) for v, d in zip(value, done, strict=True) if d]
-    means, filled = jax.device_get(window_means(window, scenario("tracking")))
+    means, filled = jax.device_get(window_means(window, scenario_kind("tracking").rollout_velocity))
     assert filled
     assert int(window.count) == len(returns)
     assert means["rollout/avg_episode_return"] == pytest.approx(np.mean(returns[-100:]), rel=1e-6)
@@ -134,7 +135,7 @@ def test_episode_window_keeps_the_last_hundred_finished_episodes():
 
 
 def test_empty_window_has_no_data():
-    means, filled = window_means(window_init(jnp.float32), scenario("tracking"))
+    means, filled = window_means(window_init(jnp.float32), scenario_kind("tracking").rollout_velocity)
     assert not filled and int(means["rollout/episodes"]) == 0
 
 
@@ -200,7 +201,7 @@ def test_fresh_tracks_give_every_episode_a_new_track_from_the_seeds_own_stream(t
     Episodes are cut to 8 steps so that 4 chunks (8 episodes each per seed) need refills of a
     16-track feed."""
     from envs.track_generator import generate_track
-    from xrl_jax.tracks import make_envs
+    from xrl_jax.train import make_envs
 
     prepare_cache(tmp_path)
     cfg = resolve_config(
@@ -208,7 +209,7 @@ def test_fresh_tracks_give_every_episode_a_new_track_from_the_seeds_own_stream(t
         overrides={"train_tracks": "0", "track_feed_size": "16", "track_seed": "7"},
     )  # fmt: skip
     env, params, eval_params = make_envs(cfg)
-    trainer = T.make_train(cfg, (env, params.replace(max_steps=8), eval_params))
+    trainer = T.make_trainer(cfg, (env, params.replace(max_steps=8), eval_params))
     state = trainer.init(jnp.int32(3), jnp.arange(2, dtype=jnp.int32))
     capacity = state.feed.slot_number.shape
     for chunk in range(cfg.num_chunks):
@@ -297,7 +298,7 @@ def test_the_env_step_is_traced_once_for_the_chunk_and_once_for_evaluation(tmp_p
     cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=2, overrides={"eval_interval": "64"})
     env, params, eval_params = T.make_envs(cfg)
     counting = TraceCountingEnv(env)
-    trainer = T.make_train(cfg, (counting, params, eval_params))
+    trainer = T.make_trainer(cfg, (counting, params, eval_params))
     quiet = {"progress": False, "log": lambda *_: None, "trainer": trainer}
     assert T.train(cfg, tmp_path / "run", stop_after_chunks=2, **quiet) is None
     assert counting.step_traces == 2  # the chunk's scan body and the evaluation's loop body
@@ -315,7 +316,12 @@ def test_a_resume_says_what_it_could_not_verify_or_find(tmp_path):
     prepare_cache(tmp_path / "cache")
     cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=2)
     warnings = []
-    quiet = {"progress": False, "log": lambda *_: None, "warn": warnings.append, "trainer": T.make_train(cfg)}
+    quiet = {
+        "progress": False,
+        "log": lambda *_: None,
+        "warn": warnings.append,
+        "trainer": T.make_trainer(cfg),
+    }
     assert T.train(cfg, tmp_path / "run", stop_after_chunks=2, **quiet) is None
     shutil.copytree(tmp_path / "run", tmp_path / "lost")
     for manifest in (tmp_path / "run" / "checkpoints").rglob("xrl_manifest.json"):
@@ -334,7 +340,7 @@ def test_a_resume_says_what_it_could_not_verify_or_find(tmp_path):
     # either, and nothing was lost; the resume says so in its log, without a warning.
     one_by_one = cfg.replace(max_group_size=1)
     logged, warnings[:] = [], []
-    quiet |= {"log": logged.append, "trainer": T.make_train(one_by_one)}
+    quiet |= {"log": logged.append, "trainer": T.make_trainer(one_by_one)}
     assert T.train(one_by_one, tmp_path / "one_by_one", stop_after_chunks=1, **quiet) is None
     assert T.train(one_by_one, tmp_path / "one_by_one", resume=True, **quiet)["complete"]
     assert warnings == [] and "member group 2 of 2 had not started; it starts now" in logged

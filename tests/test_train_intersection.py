@@ -30,7 +30,7 @@ def lines(path: Path) -> list[dict]:
 
 def test_presets_follow_the_released_configs():
     cfg = train_mod.resolve_config("intersection", "xsac", "paper")
-    assert cfg.multi_agent and cfg.buffer_layout == "explicit"
+    assert cfg.scenario.kind == "multi_agent" and cfg.buffer_layout == "explicit"
     assert (cfg.total_steps, cfg.buffer_size, cfg.batch_size) == (5_000_000, 15_000_000, 512)
     assert (cfg.warmup_steps, cfg.reinit_steps, cfg.eval_episodes) == (2_000, 500_001, 20)
     assert cfg.env_name == "intersection"

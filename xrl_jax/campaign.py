@@ -149,10 +149,10 @@ def plan(
     """One row per run: its status, members, memory and groups on this machine, FLOPs and device-hours,
     each for the configuration that will run: a started or finished run's own (``config.json``), a new
     one's from the preset, its own settings and the campaign's ``sets``."""
-    from xrl_jax.occupancy import load_occupancy, update_cost
+    from xrl_jax.benchmarks.occupancy import load_occupancy, update_cost
     from xrl_jax.resources import format_bytes
     from xrl_jax.runs.folder import read_run_config
-    from xrl_jax.train import get_trainer, plan_memory
+    from xrl_jax.train import get_trainer, plan_memory, scenario_kind
 
     occupancy = load_occupancy()
     rows = []
@@ -163,7 +163,8 @@ def plan(
         trainer = get_trainer(cfg)
         memory = plan_memory(trainer, cfg)
         # FLOPs as they run: the packed update, or every slot when a batch overflows (by the measured
-        # occupancy of docs/set_occupancy.json, members sharing their branches as on one device).
+        # occupancy of xrl_jax/benchmarks/set_occupancy.json, members sharing their branches as on one
+        # device).
         cost = update_cost(trainer.agent, cfg.batch_size, cfg.num_members, occupancy)
         flops = cost["expected"]
         if status == "started":
@@ -174,7 +175,7 @@ def plan(
         updates = max(cfg.total_steps - cfg.warmup_steps, 0) * cfg.num_members
         updates_left = sum(max(cfg.total_steps - max(step, cfg.warmup_steps), 0) for step in done)
         # On the Intersection one update per acting vehicle: as many as measured per env step.
-        per_step = occupancy["intersection"]["acting_vehicles_per_env_step"] if cfg.multi_agent else 1
+        per_step = scenario_kind(cfg).updates_per_env_step(cfg, occupancy)
         total, left = flops * per_step * updates, flops * per_step * updates_left
         rows.append(
             {

@@ -21,12 +21,13 @@ import numpy as np
 
 from xrl_jax import stats
 from xrl_jax.config import scenario
-from xrl_jax.evaluation import evaluate_yardstick
+from xrl_jax.evaluation import evaluate_yardstick, has_yardstick
 from xrl_jax.runs.folder import RunFolderError, read_run_config
 from xrl_jax.runs.kept import distinct_runs, keep_records, protocol_groups
 from xrl_jax.runs.plots import format_step_axis, plot_sweep
 from xrl_jax.runs.summary import summarize_pooled, summarize_run, summary_metrics
 from xrl_jax.runs.tables import curve_label
+from xrl_jax.train.kinds import scenario_kind
 
 PAPER_RESULTS = Path(__file__).resolve().parents[1] / "docs" / "paper_results.json"
 BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
@@ -129,6 +130,7 @@ def results_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
     """The table of one env: a row per plain run (sweeps have their own figure), ordered by agent;
     the paper's value beside ours only where the run used the paper's protocol."""
     published = paper_values()
+    published_envs = {published_env for published_env, _, _ in published}
     metrics = table_metrics(env)
     rows = []
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
@@ -142,7 +144,7 @@ def results_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
         }
         for key, label in metrics:
             row[label] = _cell(run.summary["aggregate"].get(key))
-            if scenario(env).custom:  # a user's env: the paper has no value to stand beside it
+            if env not in published_envs:  # a user's env: the paper has no value to stand beside it
                 continue
             same_protocol = run.cfg.preset == "paper"
             row[f"paper: {label}"] = _paper_cell(
@@ -162,15 +164,15 @@ def controller_rows(
     the runs' held-out tracks; Intersection: the scripted driver of :mod:`envs.intersection_driver`
     on the runs' evaluation episodes. ``target_speed`` None is the driver's own default."""
     metrics = table_metrics(env)
-    multi = scenario(env).multi_agent  # its evaluation episodes are fixed: no track seed
-    track_sets = sorted({(None if multi else r.cfg.eval_track_seed, r.cfg.eval_episodes) for r in runs
+    seeded = scenario_kind(env).seeded_evaluation  # the Intersection's episodes are fixed: no seed
+    track_sets = sorted({(r.cfg.eval_track_seed if seeded else None, r.cfg.eval_episodes) for r in runs
                          if r.cfg.env == env and not r.is_sweep}, key=str)  # fmt: skip
     rows, results = [], []
     for seed, episodes in track_sets:
         result = evaluate_yardstick(env, seed, episodes, target_speed)
-        where = {"episodes": episodes} if multi else {"eval_track_seed": seed, "episodes": episodes}
+        where = {"eval_track_seed": seed, "episodes": episodes} if seeded else {"episodes": episodes}
         results.append({"env": env, **where, **result})
-        seeds = f"{episodes} episodes" if multi else f"{episodes} tracks (seed {seed})"
+        seeds = f"{episodes} tracks (seed {seed})" if seeded else f"{episodes} episodes"
         row = {"agent": yardstick_name(env, result["target_speed"]), "preset": "-", "steps": "-",
                "seeds": seeds, "folder": "-"}  # fmt: skip
         for key, label in metrics:
@@ -394,7 +396,7 @@ def _write_report(
         lines += [f"## {env}", ""]
         rows = results_rows(runs, env)
         references = []
-        if controller and not scenario(env).custom:  # a user's env has no yardstick
+        if controller and has_yardstick(env):  # a user's env has none
             reference_rows, references = controller_rows(runs, env, controller_speed)
             rows += reference_rows
             all_references += references
@@ -405,7 +407,7 @@ def _write_report(
         if figure is not None:
             figure.savefig(out / f"{env}.png", dpi=110)
             lines += [f"![{env}]({env}.png)", ""]
-        if scenario(env).multi_agent:  # the paper's Fig. 7: learning curves of each pair
+        if scenario_kind(env).pairs_figure:  # the paper's Fig. 7: learning curves of each pair
             pairs = pairs_figure(runs, env, references)
             if pairs is not None:
                 pairs.savefig(out / f"{env}_pairs.png", dpi=110)

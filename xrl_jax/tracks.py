@@ -1,7 +1,7 @@
-"""Environments for a run: the training track bank and the fixed evaluation tracks, cached on disk
-(the generator is slow to compile, so even a few tracks are worth keeping), and the trainer's
-vector env, which restarts episodes as the config asks. Below the evaluation and the trainer,
-which both drive on these banks."""
+"""Track banks for the racing scenarios: the training bank and the fixed evaluation tracks, cached on
+disk (the generator is slow to compile, so even a few tracks are worth keeping), and a racing env
+with params that hold a bank. Below the evaluation and the trainer, which both drive on these banks
+(the racing kind, :mod:`xrl_jax.train.kinds.racing`, builds a run's envs from them)."""
 
 from __future__ import annotations
 
@@ -19,12 +19,9 @@ import envs.track
 import envs.track_cones
 import envs.track_generator
 import envs.track_shape
-from envs.core import VmapWrapper, vmap_env
 from envs.racing import with_bank
 from envs.track import Track
-from envs.track_feed import FreshTrackEnvs
 from envs.track_generator import make_track_bank
-from xrl_jax.config import TrainConfig
 
 
 def cache_dir() -> Path:
@@ -73,27 +70,6 @@ def cached_track_bank(seed: int, size: int):
     return jax.tree.map(jnp.asarray, bank)
 
 
-def make_envs(cfg: TrainConfig):
-    """``(env, train_params, eval_params)``. Racing: the fixed evaluation tracks, and for training a
-    fixed bank (``train_tracks`` > 0) or, with fresh tracks, params whose one-track bank is only a
-    template for each seed's :class:`envs.track_feed.TrackFeed`. Intersection: curriculum for training,
-    8 vehicles for evaluation (docs/carenv-intersection.md §8.8). A user's env: its own params for
-    both (its evaluation episodes start from fixed reset keys)."""
-    if cfg.multi_agent:
-        env, params = envs.make(cfg.env_name)
-        return env, params, params.replace(max_vehicles=8)
-    if not cfg.on_tracks:
-        env, params = envs.make(cfg.env_name)
-        return env, params, params
-
-    eval_bank = cached_track_bank(cfg.eval_track_seed, cfg.eval_episodes)
-    if cfg.fresh_tracks:  # the feed brings the tracks; the bank is a one-track template
-        train_bank = jax.tree.map(lambda leaf: leaf[:1], eval_bank)
-    else:
-        train_bank = cached_track_bank(cfg.track_seed, cfg.train_tracks)
-    return racing_env(cfg.env_name, train_bank, eval_bank)
-
-
 def racing_env(env_name: str, *banks):
     """``(env, params_1, ..., params_n)``: racing scenario ``env_name`` and, per track bank, params
     that hold it with its ring tables and reset cache (each bank prepared in one compiled call)."""
@@ -101,15 +77,3 @@ def racing_env(env_name: str, *banks):
     env, params = envs.make(env_name, track=jax.tree.map(lambda leaf: leaf[0], banks[0]))
     attach = jax.jit(lambda params, bank: env.prepare(with_bank(params, bank)))
     return (env, *(attach(params, bank) for bank in banks))
-
-
-def vector_env(cfg: TrainConfig, env) -> VmapWrapper:
-    """The ``num_envs`` envs of one training member, restarting their episodes the config's way: the
-    multi-agent env restarts itself; racing envs start each episode on a fresh track of the member's
-    feed (refilled half a feed at a time), or with ``train_tracks`` > 0 on one drawn from the fixed
-    bank (auto-reset); a user's env restarts from its own reset (auto-reset)."""
-    if cfg.multi_agent:
-        return VmapWrapper(env, cfg.num_envs)
-    if cfg.fresh_tracks:
-        return FreshTrackEnvs(env, cfg.num_envs, cfg.track_feed_size, cfg.track_feed_size // 2)
-    return vmap_env(env, cfg.num_envs)

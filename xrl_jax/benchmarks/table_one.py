@@ -3,8 +3,8 @@
 FLOPs are XLA's own count (``cost_analysis`` of the compiled acting function): on every one of the 100
 cone slots (the paper's count), and as it runs — the per-object layers on the present cones only
 (xrl_jax.sets), packed into the rows one observation reserves, weighted with the measured chance
-(docs/set_occupancy.json) that an observation holds more cones and is computed on every slot; an
-analytic dense-layer count beside them. The mixture actor acts through the fast path
+(:mod:`xrl_jax.benchmarks.occupancy`) that an observation holds more cones and is computed on every
+slot; an analytic dense-layer count beside them. The mixture actor acts through the fast path
 (docs/algorithms.md §3.7): layers up to the weight-branch depth φ_d run for every object, the rest of
 the trunk and the heads for the one sampled object only — which is why φ_d = 1 costs a small fraction
 of φ_d = 3.
@@ -19,9 +19,9 @@ import jax
 
 import envs
 from xrl_jax import distributions, networks
+from xrl_jax.benchmarks.occupancy import load_occupancy, overflow_probability
 from xrl_jax.benchmarks.timing import compiled_flops
 from xrl_jax.config import preset
-from xrl_jax.occupancy import load_occupancy, overflow_probability
 from xrl_jax.sets import Packing
 
 # Table I of the paper: inference FLOPs per action and parameters (Country Road).

@@ -1,5 +1,6 @@
 """Timing on a shared machine: best-of-N wall times after compilation, variants timed in turn, the
-float32 matmul ceiling that compute-bound work is compared to, XLA's FLOP count, peak memory."""
+float32 matmul ceiling that compute-bound work is compared to, XLA's FLOP count (of any function, and
+of one update), peak memory."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+
+from xrl_jax.sets import MEMBERS_AXIS
 
 
 def machine_info() -> dict:
@@ -69,13 +72,41 @@ def bench_matmul(size: int = 2048, repeats: int = 5) -> dict:
     return {"size": size, "seconds": seconds, "gflops": flops / seconds / 1e9}
 
 
-def compiled_flops(fn: Callable, *args) -> float:
-    """XLA's FLOP count of ``jax.jit(fn)(*args)`` after compilation. XLA counts every loop body once
-    and a conditional as its larger branch."""
-    analysis = jax.jit(fn).lower(*args).compile().cost_analysis()
+def compiled_flops(fn: Callable, *args, compiled: bool = True) -> float:
+    """XLA's FLOP count of ``jax.jit(fn)(*args)`` (``args`` may be shapes) after compilation, or with
+    ``compiled`` False of the lowered program, before XLA's simplifications (no compilation, but more
+    FLOPs: the lowered update of Country Road's XDSAC counts about 3x what runs). XLA counts every
+    loop body once and a conditional as its larger branch."""
+    lowered = jax.jit(fn).lower(*args)
+    analysis = (lowered.compile() if compiled else lowered).cost_analysis()
     if isinstance(analysis, list):  # older JAX returns one dict per device
         analysis = analysis[0]
     return float(analysis.get("flops", float("nan")))
+
+
+def update_flops(agent, batch_size: int, members: int = 1, compiled: bool = False) -> float:
+    """XLA's FLOPs of one gradient step of ``agent`` per member on a batch of ``batch_size``, the update
+    vmapped over ``members`` agent states on the named members axis (as the trainer runs it: members
+    share their packed-or-dense branches), the batch shared. Shapes only: nothing runs. ``compiled``:
+    count what runs (costs a compilation; the benchmarks, which compile anyway); otherwise the lowered
+    program (:func:`compiled_flops`; the campaign's estimates, for many runs at once)."""
+    obs = agent.dummy_observation((batch_size,))
+    flags = jnp.zeros(batch_size, bool)
+    batch = {
+        "obs": obs,
+        "action": agent.random_action(jax.random.PRNGKey(0), (batch_size,)),
+        "reward": jnp.zeros(batch_size),
+        "next_obs": obs,
+        "terminated": flags,
+        "truncated": flags,
+    }
+    states = jax.eval_shape(jax.vmap(agent.init), jax.random.split(jax.random.PRNGKey(0), members))
+    update_all = jax.vmap(agent.update, in_axes=(0, 0, None), axis_name=MEMBERS_AXIS)
+
+    def one_update(states, key):
+        return update_all(jax.random.split(key, members), states, batch)[0]
+
+    return compiled_flops(one_update, states, jax.random.PRNGKey(0), compiled=compiled) / members
 
 
 def peak_memory_bytes() -> dict:

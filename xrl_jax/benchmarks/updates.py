@@ -13,23 +13,23 @@ import numpy as np
 import envs
 from xrl_jax import train
 from xrl_jax.agents import Agent, make_agent
+from xrl_jax.benchmarks.occupancy import packed_only
 from xrl_jax.benchmarks.timing import (
-    compiled_flops,
     matmul_call,
     peak_memory_bytes,
     seconds_of,
     timed_alternately,
+    update_flops,
 )
 from xrl_jax.config import preset, preset_train_fields
 from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
-from xrl_jax.occupancy import packed_only
 from xrl_jax.sets import MEMBERS_AXIS
 
 
 def real_batch(observations: dict, batch_size: int, agent: Agent, key) -> dict:
     """A replay batch of ``batch_size`` observations and next observations drawn from real rollouts
-    (``xrl_jax.occupancy``), so that its sets hold as many objects as training sees; random actions
-    and rewards (they do not change the cost)."""
+    (:mod:`xrl_jax.benchmarks.occupancy`), so that its sets hold as many objects as training sees;
+    random actions and rewards (they do not change the cost)."""
     total = next(iter(observations.values())).shape[0]
     k_obs, k_next, k_action, k_reward = jax.random.split(key, 4)
 
@@ -96,8 +96,9 @@ def bench_update(
             return jax.lax.scan(body, states, (jax.random.split(key, updates), batches))[0]
 
         compiled, compile_s = seconds_of(lambda run=run: jax.jit(run).lower(states, key).compile())
-        one = jax.tree.map(lambda x: x[0], batches)
-        flops = update_flops(agent if name != "packed" else packed_only(agent), states, one, seeds)
+        flops = update_flops(
+            agent if name != "packed" else packed_only(agent), batch_size, seeds, compiled=True
+        )
         jax.block_until_ready(compiled(states, key))
         calls[name] = lambda compiled=compiled: compiled(states, key)
         out[name] = {"gflop_per_update": flops / 1e9, "compile_s": compile_s}
@@ -121,16 +122,6 @@ def _stacked_batches(observations: dict, batch_size: int, agent: Agent, count: i
     keys = jax.random.split(jax.random.PRNGKey(1), count)
     batches = [real_batch(observations, batch_size, agent, k) for k in keys]
     return jax.tree.map(lambda *xs: jnp.stack(xs), *batches)
-
-
-def update_flops(agent, states, batch: dict, seeds: int) -> float:
-    """XLA's FLOPs of one update per member (cost analysis of the compiled, vmapped update)."""
-    update_all = jax.vmap(agent.update, in_axes=(0, 0, None), axis_name=MEMBERS_AXIS)
-
-    def one_update(states, key):
-        return update_all(jax.random.split(key, seeds), states, batch)[0]
-
-    return compiled_flops(one_update, states, jax.random.PRNGKey(0)) / seeds
 
 
 def bench_train(
@@ -160,7 +151,7 @@ def bench_train(
     cfg = train.resolve_config(env, algo, preset_name, num_seeds=seeds, total_steps=steps, overrides=sets)
     cfg = cfg.replace(buffer_size=max(cfg.batch_size, min(cfg.buffer_size, steps)))
     start = time.perf_counter()
-    trainer = train.make_train(cfg, devices=jax.devices()[:devices])
+    trainer = train.make_trainer(cfg, devices=jax.devices()[:devices])
     state = jax.block_until_ready(trainer.init(0, range(seeds)))
     setup_s = time.perf_counter() - start
     (state, metrics), first_chunk_s = seconds_of(lambda: trainer.chunk(state, np.int32(0)))  # mostly warm-up

@@ -53,7 +53,7 @@ from xrl_jax.config.presets import (
     preset_train_fields,
 )
 from xrl_jax.config.resolve import resolve_config, settings_help
-from xrl_jax.config.scenarios import MULTI_AGENT_ENVS, SCENARIOS, Scenario, scenario
+from xrl_jax.config.scenarios import SCENARIOS, Scenario, scenario
 from xrl_jax.config.train import TrainConfig, train_field_names, unused_sweep_reason
 
 __all__ = [
@@ -71,7 +71,6 @@ __all__ = [
     "MAX_VEHICLES",
     "MIXTURE_ALGOS",
     "MIXTURE_LOG_STD_MIN",
-    "MULTI_AGENT_ENVS",
     "PRESETS",
     "QUICK_INTERSECTION_OPTIMISATION",
     "QUICK_RACING_OPTIMISATION",

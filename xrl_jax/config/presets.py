@@ -1,7 +1,8 @@
 """The presets as tables: agent hyper-parameters per (env, algo) and train-loop settings per (preset,
 scenario kind), refined per env where one needs its own. paper = docs/algorithms.md §5.7 / §4.7 and,
 for the Intersection, the released configs of docs/carenv-intersection.md §8.7; quick = a budget of
-tens to hundreds of thousands of steps; smoke = tiny. Adding a preset touches this module only."""
+tens to hundreds of thousands of steps; smoke = tiny. Adding a preset touches this module only. An env
+without rows of its own (a user's env) takes its kind's; its agent is a user's env's (Country Road's)."""
 
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ from xrl_jax.config.scenarios import scenario
 
 INTERSECTION_ALPHA = 0.015  # fixed entropy coefficient of all four intersection agents (§8.7 there)
 # Rows reserved per set for the present objects (xrl_jax.sets). Country Road's sets hold 28.9 cones on
-# average (p99 47 of 100 slots, docs/set_occupancy.json); the Intersection's training buffer held 1.48
-# other vehicles per observation (sd 0.87) after 3,000 quick-preset steps, three times the random-driver
-# rollouts of docs/set_occupancy.json. A batch of 128 sets then leaves over 6 standard deviations of
-# its total spare; docs/performance.md shows the choice.
+# average (p99 47 of 100 slots, xrl_jax/benchmarks/set_occupancy.json); the Intersection's training
+# buffer held 1.48 other vehicles per observation (sd 0.87) after 3,000 quick-preset steps, three times
+# the random-driver rollouts of set_occupancy.json. A batch of 128 sets then leaves over 6 standard
+# deviations of its total spare; docs/performance.md shows the choice.
 COUNTRY_ROAD_PACKED_ROWS = 32.0
 INTERSECTION_PACKED_ROWS = 2.0
 
@@ -47,11 +48,12 @@ QUICK_SIZES = {"actor_width": 64, "critic_width": 64, "fe_width": 32, "actor_dep
 # runs. fe_width, which only a Deep Set uses, doubles along.
 QUICK_TRACKING_WIDE_SIZES = {"actor_width": 128, "critic_width": 128, "fe_width": 128}
 QUICK_TRACKING_WIDE_ALGOS = ("sac", "dsac", "xsac")
+QUICK_WIDE = {("tracking", algo): QUICK_TRACKING_WIDE_SIZES for algo in QUICK_TRACKING_WIDE_ALGOS}
 SMOKE_SIZES = dict(actor_width=16, actor_depth=2, critic_width=16, critic_depth=1, fe_width=16, pe_freqs=2)
 
-# Train-loop settings by (preset, scenario kind: "racing" or "intersection"), and by (preset, env) for an
-# env that refines its kind's row; unset fields keep TrainConfig's defaults, which are the
-# paper's racing protocol (§5.7: 1e6 steps, buffer 1e6, evaluation every 1e5 steps on 100 tracks).
+# Train-loop settings by (preset, scenario kind: Scenario.kind), refined by (preset, env) in
+# ENV_TRAIN_PRESETS for an env that needs its own; unset fields keep TrainConfig's defaults, which are
+# the paper's racing protocol (§5.7: 1e6 steps, buffer 1e6, evaluation every 1e5 steps on 100 tracks).
 # Intersection steps are multi-agent env steps (docs/carenv-intersection.md §8): every alive agent's
 # transition is stored and followed by one update; paper = the released configs (§8.7 there, 2 envs
 # as the reference's 2 workers).
@@ -61,17 +63,10 @@ TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
     ("quick", "racing"): dict(
         total_steps=80_000, batch_size=128, log_interval=1_000, eval_interval=5_000,
         checkpoint_interval=10_000, warmup_steps=1_000),
-    # Tracking over the racing row: 80k steps left all but XDSAC below the hand controller; SAC passed
-    # it after 240k (docs/quick_preset_tuning.md). Every Tracking agent trains that long, evaluated
-    # less often.
-    ("quick", "tracking"): dict(total_steps=240_000, eval_interval=40_000),
-    # Country Road over the racing row: at 80k steps DSAC and XDSAC ended at 15.2 and 13.8 against the
-    # controller's 36.7; XDSAC kept rising as its learning rates decayed and passed it only near 280k.
-    ("quick", "country_road"): dict(total_steps=320_000, eval_interval=40_000),
     ("smoke", "racing"): dict(
         total_steps=192, num_envs=4, warmup_steps=64, batch_size=16, buffer_size=256, log_interval=64,
         eval_interval=192, checkpoint_interval=64, eval_episodes=3, train_tracks=3),
-    ("paper", "intersection"): dict(
+    ("paper", "multi_agent"): dict(
         total_steps=5_000_000, num_envs=2, warmup_steps=2_000, batch_size=512, buffer_size=15_000_000,
         log_interval=2_000, eval_interval=100_000, eval_episodes=20, checkpoint_interval=100_000,
         reinit_steps=500_001),
@@ -79,46 +74,42 @@ TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
     # a time: members in one program update in lockstep, each step as often as the member with the most
     # vehicles needs, and on a 2-core CPU that made 4 seeds together 1.6x slower than one after another
     # (docs/performance.md).
-    ("quick", "intersection"): dict(
+    ("quick", "multi_agent"): dict(
         total_steps=200_000, num_envs=2, warmup_steps=2_000, batch_size=128, buffer_size=600_000,
         log_interval=1_000, eval_interval=10_000, eval_episodes=10, checkpoint_interval=10_000,
         max_group_size=1),
-    ("smoke", "intersection"): dict(
+    ("smoke", "multi_agent"): dict(
         total_steps=128, num_envs=2, warmup_steps=64, batch_size=16, buffer_size=512, log_interval=64,
         eval_interval=128, eval_episodes=2, checkpoint_interval=64),
 }
+# A user's env: the racing rows (single-agent steps) without their track settings.
+TRAIN_PRESETS.update({
+    (name, "user_env"): {k: v for k, v in TRAIN_PRESETS[(name, "racing")].items() if k != "train_tracks"}
+    for name in PRESETS
+})
+ENV_TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
+    # Tracking over the racing row: 80k steps left all but XDSAC below the hand controller; SAC passed
+    # it after 240k (docs/quick_preset_tuning.md). Every Tracking agent trains that long, evaluated
+    # less often.
+    ("quick", "tracking"): dict(total_steps=240_000, eval_interval=40_000),
+    # Country Road over the racing row: at 80k steps DSAC and XDSAC ended at 15.2 and 13.8 against the
+    # controller's 36.7; XDSAC kept rising as its learning rates decayed and passed it only near 280k.
+    ("quick", "country_road"): dict(total_steps=320_000, eval_interval=40_000),
+}
 # fmt: on
+# Presets whose replay buffer and learning-rate decay follow the run's length (resolve_config), by
+# scenario kind: the quick racing rows and a user's env's, which are theirs; the Intersection's quick
+# row sets its own buffer, and its learning rates stay constant.
+RUN_LENGTH_PRESETS = {("quick", "racing"), ("quick", "user_env")}
 
 
-def _paper_agent(env: str, algo: str) -> AgentConfig:
-    """§5.7 / §4.7 (country_road = the paper's racing) and, for the intersection, the released marl
-    configs (§8.7 of docs/carenv-intersection.md; docs/algorithms.md Appendix A)."""
-    is_x = algo in MIXTURE_ALGOS
-    if env == "intersection":
-        # Fixed α; lr 3e-4 (DSAC 1e-4); clip 10 but for SAC; X actors 3 × 256 per object with the
-        # neutral object; 2 × 256 critics on a width-256 Deep Set without Fourier features.
-        lr = 1e-4 if algo == "dsac" else 3e-4
-        return AgentConfig(
-            algo=algo,
-            actor_depth=3 if is_x else 2,
-            fe_width=256,
-            fourier_scale=None,
-            neutral_object=is_x,
-            clip_norm=None if algo == "sac" else 10.0,
-            auto_alpha=False,
-            init_alpha=INTERSECTION_ALPHA,
-            actor_lr=lr,
-            critic_lr=lr,
-            packed_rows=INTERSECTION_PACKED_ROWS,
-        )
-    if scenario(env).custom:  # a user's set of objects: Country Road's Deep Set agents, every slot computed
-        return _paper_agent("country_road", algo).replace(target_entropy=None, packed_rows=None)
-    racing = env == "country_road"
+def _racing_agent(algo: str, racing: bool) -> AgentConfig:
+    """§5.7 / §4.7: Country Road (``racing``, the paper's racing) or Tracking."""
     lr = 3e-4 if (not racing and algo in CONTINUOUS_ALGOS) else 1e-4
     depth = 2 if racing else 3
     return AgentConfig(
         algo=algo,
-        actor_depth=3 if is_x else depth,
+        actor_depth=3 if algo in MIXTURE_ALGOS else depth,
         critic_depth=depth,
         feature_extractor="deepset" if racing else "flat_pe",
         actor_lr=lr,
@@ -129,6 +120,43 @@ def _paper_agent(env: str, algo: str) -> AgentConfig:
     )
 
 
+def _intersection_agent(algo: str) -> AgentConfig:
+    """The released marl configs (§8.7 of docs/carenv-intersection.md; docs/algorithms.md Appendix A):
+    fixed α; lr 3e-4 (DSAC 1e-4); clip 10 but for SAC; X actors 3 × 256 per object with the neutral
+    object; 2 × 256 critics on a width-256 Deep Set without Fourier features."""
+    is_x = algo in MIXTURE_ALGOS
+    lr = 1e-4 if algo == "dsac" else 3e-4
+    return AgentConfig(
+        algo=algo,
+        actor_depth=3 if is_x else 2,
+        fe_width=256,
+        fourier_scale=None,
+        neutral_object=is_x,
+        clip_norm=None if algo == "sac" else 10.0,
+        auto_alpha=False,
+        init_alpha=INTERSECTION_ALPHA,
+        actor_lr=lr,
+        critic_lr=lr,
+        packed_rows=INTERSECTION_PACKED_ROWS,
+    )
+
+
+def _user_env_agent(algo: str) -> AgentConfig:
+    """A user's set of objects: Country Road's Deep Set agents, every slot computed."""
+    return _racing_agent(algo, racing=True).replace(target_entropy=None, packed_rows=None)
+
+
+# The paper's agent of each built-in env; any other env is a user's.
+PAPER_AGENTS = {
+    "country_road": lambda algo: _racing_agent(algo, racing=True),
+    "tracking": lambda algo: _racing_agent(algo, racing=False),
+    "intersection": _intersection_agent,
+}
+# The quick preset's optimisation constants per env (any other: the racing ones). On the Intersection
+# α stays fixed; 8 slots at width 64: packing cost more than it saved (docs/performance.md).
+QUICK_OPTIMISATION = {"intersection": {"packed_rows": None, **QUICK_INTERSECTION_OPTIMISATION}}
+
+
 def preset(name: str, env: str, algo: str) -> AgentConfig:
     """The agent of preset ``name`` for (env, algo): paper (a user's env: Country Road's); quick =
     width 64 (128 on Tracking but for XDSAC) and, on the single-agent scenarios, the short-budget
@@ -136,15 +164,11 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
     scenario(env)  # an unknown env fails here, saying how a user's env is registered
     for kind, value, choices in (("preset", name, PRESETS), ("algo", algo, ALGOS)):
         check_choice("", kind, value, choices)
-    agent = _paper_agent(env, algo)
+    agent = PAPER_AGENTS.get(env, _user_env_agent)(algo)
     if name == "quick":
         agent = agent.replace(**QUICK_SIZES)
-        if env != "intersection":
-            agent = agent.replace(**QUICK_RACING_OPTIMISATION)
-        else:  # α stays fixed; 8 slots at width 64: packing cost more than it saved (docs/performance.md)
-            agent = agent.replace(packed_rows=None, **QUICK_INTERSECTION_OPTIMISATION)
-        if env == "tracking" and algo in QUICK_TRACKING_WIDE_ALGOS:
-            agent = agent.replace(**QUICK_TRACKING_WIDE_SIZES)
+        agent = agent.replace(**QUICK_OPTIMISATION.get(env, QUICK_RACING_OPTIMISATION))
+        agent = agent.replace(**QUICK_WIDE.get((env, algo), {}))
     elif name == "smoke":
         agent = agent.replace(**SMOKE_SIZES)
     return agent
@@ -152,10 +176,9 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
 
 def preset_train_fields(name: str, env: str) -> dict[str, Any]:
     """The train-loop settings of preset ``name`` on ``env``: its scenario kind's row, refined by the
-    env's own where it has one; a user's env takes the racing ones (single-agent steps), without their
-    track settings."""
-    fields = dict(TRAIN_PRESETS[(name, "intersection" if scenario(env).multi_agent else "racing")])
-    fields.update(TRAIN_PRESETS.get((name, env), {}))  # an env's own row refines its scenario kind's
-    if scenario(env).custom:
-        fields.pop("train_tracks", None)
+    env's own where it has one (a user's env: the racing ones, single-agent steps, without their track
+    settings; a kind without rows of its own takes those too)."""
+    kind = scenario(env).kind
+    fields = dict(TRAIN_PRESETS.get((name, kind), TRAIN_PRESETS[(name, "user_env")]))
+    fields.update(ENV_TRAIN_PRESETS.get((name, env), {}))  # an env's own row refines its kind's
     return fields

@@ -12,8 +12,8 @@ from xrl_jax.config.agent import AgentConfig, field_names
 from xrl_jax.config.checks import ConfigError, check_choice
 from xrl_jax.config.names import ALGOS, PRESETS
 from xrl_jax.config.overrides import apply_overrides, parse_value
+from xrl_jax.config.presets import RUN_LENGTH_PRESETS, preset_train_fields
 from xrl_jax.config.presets import preset as agent_preset  # resolve_config's ``preset`` is a name
-from xrl_jax.config.presets import preset_train_fields
 from xrl_jax.config.scenarios import scenario
 from xrl_jax.config.train import TrainConfig, train_field_names
 
@@ -59,7 +59,7 @@ def resolve_config(
             allowed = ", ".join(sorted((train_names - {"env", "algo", "preset"}) | agent_names))
             raise ConfigError(f"unknown setting {key!r}; allowed: {allowed}")
     agent = apply_overrides(agent_preset(preset_name, env, algo), agent_changes)
-    if preset_name == "quick" and not scenario(env).multi_agent:  # settings that follow the run's length
+    if (preset_name, scenario(env).kind) in RUN_LENGTH_PRESETS:  # settings that follow the run's length
         if "buffer_size" not in (overrides or {}):
             # Keep every transition, as the paper's protocol does (buffer = steps = 10⁶).
             fields["buffer_size"] = max(fields["total_steps"], fields["batch_size"])

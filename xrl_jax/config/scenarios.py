@@ -1,14 +1,21 @@
 """The facts of each scenario in one table: its observation layout (the set of objects whose mixture
-weights are the explanation), whether it is multi-agent, what is reported over seeds, what the
-report's table and comparisons show, and its yardstick. Every module asks this table rather than
-testing the scenario's name. A user's own env joins the table through
-:func:`xrl_jax.custom_envs.register_env`, which reads its facts off the env (:func:`register_scenario`)."""
+weights are the explanation), its kind, what is reported over seeds, what the report's table and
+comparisons show, and its yardstick. Every module asks this table rather than testing the scenario's
+name. A user's own env joins the table through :func:`xrl_jax.custom_envs.register_env`, which reads
+its facts off the env (:func:`register_scenario`).
+
+The *kind* names the object that answers how such a scenario trains, evaluates, reports and is
+explained (:mod:`xrl_jax.train.kinds`: racing on tracks, the multi-agent Intersection, a user's env).
+This layer is below the trainer and cannot ask that object: what the configuration itself needs of a
+kind is written here as data, the scenario's own facts (whether it drives on tracks, how many agent
+slots an env has)."""
 
 from __future__ import annotations
 
 import dataclasses
 
 from xrl_jax.config.checks import ConfigError
+from xrl_jax.config.names import MAX_VEHICLES
 
 RACING_SUMMARY = (
     ("avg_return", "final return"),
@@ -37,20 +44,18 @@ class Scenario:
     num_objects: int  # slots of that set (absent objects are all-zero rows)
     object_features: int
     state_dim: int  # the ego state vector beside the set
-    multi_agent: bool
+    kind: str  # its kind's name in xrl_jax.train.kinds: "racing", "multi_agent" or "user_env"
     summary_metrics: tuple[tuple[str, str], ...]  # (key, label) reported over seeds
     table_keys: tuple[str, ...]  # the report's columns; the first two are its figure's (Fig. 5/6/7)
     improvement_keys: tuple[str, ...]  # P(explainable > baseline) is taken on these
     yardstick: str  # what the report compares the agents with
     on_tracks: bool = True  # racing: trains on generated tracks, evaluates on fixed ones
+    # Agents per env, each an actor with its own observation: a multi-agent env's vehicle slots. Their
+    # transitions are stored packed, one per row (a varying number per step), with next_obs.
+    agent_slots: int = 1
     actions: str = "both"  # "both" (a *_discrete variant in envs), "continuous" or "discrete" (one env)
     max_episode_steps: int | None = None  # a user's env: where the evaluation stops an episode
     object_xy: tuple[int, int] | None = None  # a user's env: the object features that are its x, y
-
-    @property
-    def custom(self) -> bool:
-        """A user's env (:func:`register_scenario`): its own reset starts every episode."""
-        return self.name not in BUILT_IN
 
     def metric_label(self, key: str) -> str:
         return dict(self.summary_metrics)[key]
@@ -62,22 +67,22 @@ class Scenario:
 
 SCENARIOS: dict[str, Scenario] = {
     "country_road": Scenario(
-        "country_road", "cones_set", 100, 5, 6, False, RACING_SUMMARY,
+        "country_road", "cones_set", 100, 5, 6, "racing", RACING_SUMMARY,
         ("avg_return", "avg_etr"), ("avg_return",), "hand controller",
     ),
     "tracking": Scenario(
-        "tracking", "trajectory_set", 25, 4, 6, False, RACING_SUMMARY,
+        "tracking", "trajectory_set", 25, 4, 6, "racing", RACING_SUMMARY,
         ("avg_return", "avg_etr"), ("avg_return",), "hand controller",
     ),
     # per agent: 8 other-vehicle slots (present, rel x/y, vel x/y, dir cos/sin) and odometry + route
     "intersection": Scenario(
-        "intersection", "vehicles_set", 8, 7, 66, True, INTERSECTION_SUMMARY,
+        "intersection", "vehicles_set", 8, 7, 66, "multi_agent", INTERSECTION_SUMMARY,
         ("avg_trips_completed", "avg_early_terminations", "avg_return"),
         ("avg_trips_completed", "avg_early_terminations"), "scripted driver", on_tracks=False,
+        agent_slots=MAX_VEHICLES,
     ),
 }  # fmt: skip
 BUILT_IN = tuple(SCENARIOS)  # == names.ENVS (a test checks)
-MULTI_AGENT_ENVS = tuple(name for name, facts in SCENARIOS.items() if facts.multi_agent)
 
 
 def scenario(name: str) -> Scenario:
@@ -103,7 +108,7 @@ def custom_scenario(
 ) -> Scenario:  # fmt: skip
     """The facts of a user's single-agent env, its evaluation the env's own resets."""
     return Scenario(
-        name, set_key, num_objects, object_features, state_dim, False, CUSTOM_SUMMARY,
+        name, set_key, num_objects, object_features, state_dim, "user_env", CUSTOM_SUMMARY,
         ("avg_return", "avg_terminated"), ("avg_return",), "none", on_tracks=False, actions=actions,
         max_episode_steps=max_episode_steps, object_xy=object_xy,
     )  # fmt: skip

@@ -11,7 +11,7 @@ from typing import Any
 
 from xrl_jax.config.agent import AgentConfig
 from xrl_jax.config.checks import ConfigError, check_choice, check_known, is_int, is_number, require, setting
-from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, MAX_VEHICLES, PRESETS, SWEEPABLE_FIELDS
+from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, PRESETS, SWEEPABLE_FIELDS
 from xrl_jax.config.scenarios import Scenario, scenario
 
 
@@ -75,21 +75,16 @@ class TrainConfig:
         return self.env + ("_discrete" if both and self.agent.is_discrete else "")
 
     @property
-    def multi_agent(self) -> bool:
-        return self.scenario.multi_agent
-
-    @property
-    def on_tracks(self) -> bool:
-        return self.scenario.on_tracks
-
-    @property
     def fresh_tracks(self) -> bool:  # racing trains on fresh tracks unless a fixed bank is asked for
-        return self.train_tracks == 0 and self.on_tracks
+        return self.train_tracks == 0 and self.scenario.on_tracks
 
     @property
     def buffer_layout(self) -> str:
-        """Multi-agent transitions are packed (varying count per step), so they store next_obs."""
-        return "compact" if self.agent.truncation == "drop" and not self.multi_agent else "explicit"
+        """One transition per env and step keeps each observation once ("compact", truncations
+        dropped); packed transitions (several agent slots per env, a varying number acting per step)
+        and kept truncations store next_obs ("explicit")."""
+        compact = self.agent.truncation == "drop" and self.scenario.agent_slots == 1
+        return "compact" if compact else "explicit"
 
     @property
     def chunk_vector_steps(self) -> int:
@@ -230,7 +225,7 @@ def _validate_train(cfg: TrainConfig) -> None:
         )
     require(cfg.warmup_steps >= e, f"warmup_steps ({cfg.warmup_steps}) must be at least num_envs ({e})")
     require(
-        cfg.fresh_tracks or not cfg.on_tracks or cfg.track_seed != cfg.eval_track_seed,
+        cfg.fresh_tracks or not cfg.scenario.on_tracks or cfg.track_seed != cfg.eval_track_seed,
         f"track_seed and eval_track_seed are both {cfg.track_seed}: "
         "the evaluation tracks would be training tracks",
     )
@@ -244,10 +239,11 @@ def _validate_train(cfg: TrainConfig) -> None:
         f"buffer_size ({cfg.buffer_size}) must be at least batch_size ({cfg.batch_size})",
     )
     _validate_sweep(cfg)
-    if cfg.multi_agent:
+    if cfg.scenario.agent_slots > 1:  # packed transitions: one row per agent
+        slots = cfg.scenario.agent_slots
         require(
-            cfg.buffer_size >= MAX_VEHICLES * e,
-            f"buffer_size ({cfg.buffer_size}) must hold one step of all agents ({MAX_VEHICLES * e})",
+            cfg.buffer_size >= slots * e,
+            f"buffer_size ({cfg.buffer_size}) must hold one step of all agents ({slots * e})",
         )
 
 

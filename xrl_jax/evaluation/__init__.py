@@ -20,8 +20,10 @@ from xrl_jax.evaluation.protocol import (
 )
 from xrl_jax.evaluation.resets import make_evaluate_resets, reset_episode_keys
 from xrl_jax.evaluation.yardsticks import (
+    YARDSTICKS,
     evaluate_yardstick,
     hand_controller_evaluation,
+    has_yardstick,
     scripted_driver_evaluation,
     yardstick_evaluation,
 )
@@ -30,10 +32,12 @@ __all__ = [
     "EARLY_TERMINATION_REWARD",
     "EPISODE_FIELDS",
     "EVAL_ENV_SEED",
+    "YARDSTICKS",
     "evaluate_yardstick",
     "evaluation_episode_keys",
     "evaluation_step_key",
     "hand_controller_evaluation",
+    "has_yardstick",
     "make_evaluate",
     "make_evaluate_multiagent",
     "make_evaluate_multiagent_policy",

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import envs
 from envs import hand_controller
 from envs.intersection_driver import DriverSettings, scripted_actions
+from xrl_jax import config
 from xrl_jax.evaluation.multiagent import make_evaluate_multiagent_policy
 from xrl_jax.evaluation.protocol import make_evaluate_policy, summarize_episodes
 from xrl_jax.tracks import cached_track_bank, racing_env
@@ -25,7 +26,7 @@ def hand_controller_evaluation(scenario: str, eval_track_seed: int, episodes: in
     of it, so scoring several speeds costs one compilation. ``scenario`` is ``"tracking"`` or
     ``"country_road"``; the controller drives with continuous actions whichever action space the
     agents had (the tracks and rewards are the same)."""
-    if scenario not in ("tracking", "country_road"):
+    if config.scenario(scenario).yardstick != "hand controller":
         raise ValueError(f"the hand controller drives tracking or country_road, not {scenario!r}")
     env, eval_params = racing_env(scenario, cached_track_bank(eval_track_seed, episodes))
 
@@ -76,13 +77,28 @@ def scripted_driver_evaluation(episodes: int):
     return score
 
 
+# Each yardstick (the scenario's fact, xrl_jax.config.Scenario.yardstick) as
+# (scenario, eval_track_seed, episodes) -> score.
+YARDSTICKS = {
+    "hand controller": hand_controller_evaluation,
+    # The Intersection's evaluation episodes are fixed: no track seed.
+    "scripted driver": lambda scenario, eval_track_seed, episodes: scripted_driver_evaluation(episodes),
+}
+
+
+def has_yardstick(scenario: str) -> bool:
+    """Whether the scenario has a yardstick to score (a user's env has none)."""
+    return config.scenario(scenario).yardstick in YARDSTICKS
+
+
 def yardstick_evaluation(scenario: str, eval_track_seed: int, episodes: int):
     """The scenario's yardstick as ``score(speed=None)``: the hand controller on the racing
     scenarios' held-out tracks, the scripted driver on the Intersection (whose evaluation episodes
     are fixed, so ``eval_track_seed`` is not used there)."""
-    if scenario == "intersection":
-        return scripted_driver_evaluation(episodes)
-    return hand_controller_evaluation(scenario, eval_track_seed, episodes)
+    yardstick = config.scenario(scenario).yardstick
+    if yardstick not in YARDSTICKS:
+        raise ValueError(f"{scenario} has no yardstick to score")
+    return YARDSTICKS[yardstick](scenario, eval_track_seed, episodes)
 
 
 def evaluate_yardstick(

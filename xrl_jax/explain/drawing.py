@@ -8,6 +8,7 @@ How to read a figure: :mod:`xrl_jax.explain.figures`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable
 
@@ -174,6 +175,56 @@ def _draw_inset(ax, step: StepExplanation, max_side: float, title: str) -> Glyph
     return Glyph(-1, 1.0, centre, centre, width, height, step.combined, step.kind)
 
 
+def _intersection_view(state, params, control, overlay, objects, ego_slot, **frame_options) -> np.ndarray:
+    """The Intersection's bird view following ``ego_slot`` (``control``: all slots' controls, (8, 3))."""
+    from envs import render
+
+    del objects
+    if ego_slot is None:
+        raise ValueError("intersection explanations need the ego_slot whose policy is explained")
+    return render.render_intersection_state(
+        state, params, ego_slot=ego_slot, controls=control, overlay=overlay, **frame_options
+    )
+
+
+def _racing_view(
+    state,
+    params,
+    control,
+    overlay,
+    objects,
+    ego_slot,
+    *,
+    show_cones: bool,
+    show_points: bool,
+    **frame_options,
+) -> np.ndarray:
+    """A racing scene's bird view, with its cones or the observed centre-line points."""
+    from envs import render
+
+    del ego_slot
+    points = None
+    if show_points and objects.present.any() and np.isfinite(objects.world_xy).all():
+        points = objects.world_xy[objects.present]
+    return render.render_racing_state(
+        state,
+        params,
+        control,
+        show_cones=show_cones,
+        points=points,
+        overlay=overlay,
+        **frame_options,
+    )
+
+
+# The bird view of each scenario (its discrete variant alike).
+BIRD_VIEWS: dict[str, Callable[..., np.ndarray]] = {
+    "country_road": functools.partial(_racing_view, show_cones=True, show_points=False),
+    "tracking": functools.partial(_racing_view, show_cones=False, show_points=True),
+    "intersection": _intersection_view,
+}
+
+
 def render_base(
     env_name: str,
     state,
@@ -184,33 +235,16 @@ def render_base(
     ego_slot: int | None = None,
     **frame_options,
 ) -> np.ndarray:
-    """The scenario's bird view of one step with ``overlay`` drawn on it.
+    """The scenario's bird view of one step with ``overlay`` drawn on it (:data:`BIRD_VIEWS`).
 
     Racing scenes draw through ``envs.render.render_racing_state`` (Tracking also shows the
     observed trajectory points); the intersection through ``render_intersection_state`` following
     ``ego_slot`` (``control`` then holds all slots' controls, (8, 3)).
     """
-    from envs import render
-
     base = env_name.removesuffix("_discrete")
-    if base == "intersection":
-        if ego_slot is None:
-            raise ValueError("intersection explanations need the ego_slot whose policy is explained")
-        return render.render_intersection_state(
-            state, params, ego_slot=ego_slot, controls=control, overlay=overlay, **frame_options
-        )
-    points = None
-    if base == "tracking" and objects.present.any() and np.isfinite(objects.world_xy).all():
-        points = objects.world_xy[objects.present]
-    return render.render_racing_state(
-        state,
-        params,
-        control,
-        show_cones=base == "country_road",
-        points=points,
-        overlay=overlay,
-        **frame_options,
-    )
+    if base not in BIRD_VIEWS:
+        raise ValueError(f"no bird view of env {env_name!r}; known: {', '.join(BIRD_VIEWS)}")
+    return BIRD_VIEWS[base](state, params, control, overlay, objects, ego_slot, **frame_options)
 
 
 def explained_frame(

@@ -11,14 +11,14 @@ so it sits above the trainer; the figure modules need matplotlib.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from envs.intersection import MAX_AGENTS
-from xrl_jax.config import MULTI_AGENT_ENVS, ConfigError, scenario
+from xrl_jax.config import ConfigError
 from xrl_jax.explain.explanations import (
     make_episode_rollout,
     make_multiagent_episode_rollout,
@@ -64,38 +64,35 @@ def explain_run(request: FigureRequest, note=print) -> str:
     the run cannot answer."""
     from xrl_jax.runs.folder import read_run_env
     from xrl_jax.train import load_trained_agent
+    from xrl_jax.train.kinds import scenario_kind
 
     env = read_run_env(request.run)  # None: no readable config, which the restore reports
     try:
-        facts = None if env is None else scenario(env)
+        kind = None if env is None else scenario_kind(env)
     except ConfigError as err:  # a user's env that this process has not registered
         raise ExplainError(str(err)) from None
-    multi_agent = env in MULTI_AGENT_ENVS
-    custom = facts is not None and facts.custom
-    if custom and (request.is_video or request.slot is not None or request.all_slots or request.mirrored):
+    figure = FIGURES[kind.figure if kind is not None else "track"]
+    slots = kind.slots_explained if kind is not None else 0
+    if figure.png_only and (
+        request.is_video or request.slot is not None or request.all_slots or request.mirrored
+    ):
         raise ExplainError(f"{env} is a user's env: its figure is one PNG (no video, --slot or --mirrored)")
-    if not multi_agent and (request.slot is not None or request.all_slots):
+    if not slots and (request.slot is not None or request.all_slots):
         raise ExplainError("--slot and --all-slots are for intersection runs only")
-    if multi_agent and request.slot is not None and request.slot >= MAX_AGENTS:
-        raise ExplainError(
-            f"--slot {request.slot} out of range: the intersection has slots 0..{MAX_AGENTS - 1}"
-        )
+    if slots and request.slot is not None and request.slot >= slots:
+        raise ExplainError(f"--slot {request.slot} out of range: the intersection has slots 0..{slots - 1}")
     cfg, trainer, agent_state = load_trained_agent(request.run, request.seed, request.point)
     if request.episode >= cfg.eval_episodes:
-        what = "episodes" if multi_agent else "on tracks"
         raise ExplainError(
-            f"episode {request.episode} out of range: the run evaluates {what} 0..{cfg.eval_episodes - 1}"
+            f"episode {request.episode} out of range: the run evaluates {figure.episodes} "
+            f"0..{cfg.eval_episodes - 1}"
         )
     if not trainer.agent.config.is_mixture:
         note(
             f"{cfg.algo} is a baseline without per-object explanations; "
             "the figure shows only its action distribution"
         )
-    if multi_agent:
-        return _explain_intersection(request, cfg, trainer, agent_state)
-    if custom:
-        return _explain_custom(request, cfg, trainer, agent_state)
-    return _explain_track(request, cfg, trainer, agent_state)
+    return figure.draw(request, cfg, trainer, agent_state)
 
 
 def _check_step(request: FigureRequest, length: int) -> None:
@@ -215,3 +212,21 @@ def _explain_custom(request: FigureRequest, cfg, trainer, agent_state) -> str:
     write_attributions(set_attributions(record, request.threshold), request.attributions)
     total = float(np.sum(np.where(record["valid"], record["reward"], 0.0)))
     return f"{request.out} ({length} steps, return {total:.2f}); attributions: {request.attributions}"
+
+
+@dataclass(frozen=True)
+class RunFigure:
+    """One explanation figure of a trained run: how it is drawn, what the run's evaluation episodes
+    are called in a message, and whether it is one PNG only (no video, slot or mirror)."""
+
+    draw: Callable[..., str]  # (request, cfg, trainer, agent_state) -> what was written
+    episodes: str
+    png_only: bool = False
+
+
+# The figure each scenario kind names (xrl_jax.train.kinds: ScenarioKind.figure).
+FIGURES = {
+    "track": RunFigure(_explain_track, "on tracks"),  # the bird view of one car on an evaluation track
+    "slots": RunFigure(_explain_intersection, "episodes"),  # the bird view following one agent slot
+    "set": RunFigure(_explain_custom, "episodes", png_only=True),  # a user's env's objects by weight
+}

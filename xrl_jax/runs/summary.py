@@ -124,7 +124,7 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
             "curve": [],  # likewise: sweep.points[i].curve
             "sweep": {"fields": [name for name, _ in cfg.sweep], "points": points},
         }
-    if cfg.on_tracks:
+    if cfg.scenario.on_tracks:
         summary["training_tracks"] = _training_tracks(out, cfg)
     return summary
 
@@ -166,7 +166,7 @@ def _training_tracks(out: Path, cfg) -> dict[str, Any]:
     """What the seeds trained on: a fixed bank, or fresh tracks with each seed's count of distinct
     tracks driven and of resets that found its feed empty (from its last metrics line), keyed by
     seed (``"0"``) in a plain run and by member stem (``"point_0_seed_0"``) in a sweep."""
-    if not cfg.fresh_tracks:
+    if cfg.train_tracks > 0:  # a run on tracks: a fixed bank, or fresh tracks with train_tracks 0
         return {"fresh": False, "bank": cfg.train_tracks}
     used, reused = {}, {}
     for member, stem in enumerate(_member_stems(cfg)):

@@ -6,7 +6,8 @@ Modules, by what they hold:
 
 * :mod:`~xrl_jax.train.episodes`: the rolling window of finished episodes (rollout metrics);
 * :mod:`~xrl_jax.train.step`: one member's run state, its start and one vector step of its envs;
-* :mod:`~xrl_jax.train.chunk`: the compiled chunk over members and devices, its report (:func:`make_train`);
+* :mod:`~xrl_jax.train.kinds`: the scenario kinds (racing, multi-agent, a user's env), one object each;
+* :mod:`~xrl_jax.train.chunk`: the compiled chunk over members and devices, its report (:func:`make_trainer`);
 * :mod:`~xrl_jax.train.memory`: bytes per seed and the seed groups that fit;
 * :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`);
 * :mod:`~xrl_jax.train.restore`: a run's checkpoint groups, for a resume and for readers of a folder;
@@ -26,9 +27,10 @@ from xrl_jax.config import (
     resolve_config,
 )
 from xrl_jax.runs.folder import write_atomic
-from xrl_jax.tracks import cache_dir, cached_track_bank, make_envs, track_cache_path
-from xrl_jax.train.chunk import ChunkReport, Trainer, get_trainer, make_train
+from xrl_jax.tracks import cache_dir, cached_track_bank, track_cache_path
+from xrl_jax.train.chunk import ChunkReport, Trainer, get_trainer, make_trainer
 from xrl_jax.train.evaluate_run import evaluate_run
+from xrl_jax.train.kinds import make_envs, scenario_kind
 from xrl_jax.train.loop import DiskFullError, DivergenceError, train
 from xrl_jax.train.memory import MemoryPlanError, estimate_seed_bytes, plan_memory
 from xrl_jax.train.restore import load_trained_agent, load_trained_agents
@@ -53,10 +55,11 @@ __all__ = [
     "load_trained_agent",
     "load_trained_agents",
     "make_envs",
-    "make_train",
+    "make_trainer",
     "parse_overrides",
     "plan_memory",
     "resolve_config",
+    "scenario_kind",
     "track_cache_path",
     "train",
     "write_atomic",

@@ -3,8 +3,9 @@ one ``lax.scan`` (vmapped over members), its per-member report and health checks
 
 Per seed (docs/algorithms.md §5, mapped to synchronous vector envs as §5.8 recommends):
 
-* ``num_envs`` = E envs step in lock-step as one vector env (:func:`xrl_jax.tracks.vector_env`),
-  which restarts ended episodes; every vector step collects E transitions;
+* ``num_envs`` = E envs step in lock-step as one vector env (the scenario kind's ``vector_env``,
+  :mod:`xrl_jax.train.kinds`), which restarts ended episodes; every vector step collects E
+  transitions (on the Intersection, one per vehicle that acted, each followed by its update);
 * the first ``warmup_steps`` transitions use uniformly random actions and trigger no update;
 * afterwards every transition is followed by one gradient step (update-to-data ratio 1): E updates
   per vector step, as a ``lax.scan`` over E sampled batches; discrete agents act uniformly at random
@@ -54,10 +55,9 @@ from jax.sharding import PartitionSpec as P
 from envs.registry import user_factory
 from xrl_jax.agents import Agent, HyperParams, make_hparams
 from xrl_jax.config import HOST_ONLY_FIELDS, TrainConfig
-from xrl_jax.evaluation import make_evaluate, make_evaluate_multiagent, make_evaluate_resets
 from xrl_jax.sets import MEMBERS_AXIS
-from xrl_jax.tracks import make_envs
 from xrl_jax.train.episodes import window_means
+from xrl_jax.train.kinds import scenario_kind
 from xrl_jax.train.step import MemberParts, RunState, init_member, member_parts, vector_step
 
 
@@ -112,7 +112,7 @@ def mesh_devices(count: int = 0) -> list:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Trainer:
-    """The compiled pieces of one configuration (build with :func:`make_train`), over a device mesh.
+    """The compiled pieces of one configuration (build with :func:`make_trainer`), over a device mesh.
 
     * ``init(base_seed, seed_indices, hparams=None) -> RunState`` with a leading member axis: member
       ``j`` starts from ``fold_in(PRNGKey(base_seed), seed_indices[j])`` with hyper-parameters
@@ -122,7 +122,8 @@ class Trainer:
       points differ by their values alone). The member count must be a multiple of the mesh size;
     * ``chunk(state, start_vector_step) -> (state, ChunkReport)``: ``log_interval`` transitions per
       member, the state donated; the report's values are per-member scalars;
-    * ``evaluate(state) -> (eval_keys, per_episode)``: the §6.1 protocol on the fixed tracks.
+    * ``evaluate(state) -> (eval_keys, per_episode)``: the scenario kind's evaluation protocol (§6.1's
+      fixed tracks on the racing scenarios).
 
     ``loss_names`` are the update's metrics (losses first) in the order that
     ``ChunkHealth.first_nonfinite_loss`` counts.
@@ -139,7 +140,7 @@ class Trainer:
     evaluate: Any
     loss_names: tuple[str, ...] = ()
     unsharded_init: Any = None  # the same without a mesh, for shapes
-    venv: Any = None  # the vector env the chunk steps (xrl_jax.tracks.vector_env)
+    venv: Any = None  # the vector env the chunk steps (the scenario kind's vector_env)
 
     @property
     def num_devices(self) -> int:
@@ -193,7 +194,7 @@ _TRAINER_CACHE: dict[tuple, Trainer] = {}
 
 
 def get_trainer(cfg: TrainConfig, devices: list | None = None) -> Trainer:
-    """:func:`make_train` memoised on everything that changes the compiled code (not the seeds, not
+    """:func:`make_trainer` memoised on everything that changes the compiled code (not the seeds, not
     the swept values) and on the devices: runs of the same configuration in one process share
     their compilations."""
     devices = mesh_devices(cfg.num_devices) if devices is None else list(devices)
@@ -212,7 +213,7 @@ def get_trainer(cfg: TrainConfig, devices: list | None = None) -> Trainer:
     if cache_key not in _TRAINER_CACHE:
         if len(_TRAINER_CACHE) >= 4:
             _TRAINER_CACHE.pop(next(iter(_TRAINER_CACHE)))
-        _TRAINER_CACHE[cache_key] = make_train(key, devices=devices)
+        _TRAINER_CACHE[cache_key] = make_trainer(key, devices=devices)
     return _TRAINER_CACHE[cache_key]
 
 
@@ -261,14 +262,10 @@ def chunk_report(parts: MemberParts, state: RunState, outs, start_vector_step) -
     metrics["train/ent_coef"] = jnp.exp(state.agent.log_alpha)  # the current α: always there
     has_data.pop("train/ent_coef", None)
     average("rollout/avg_step_reward", jnp.sum(outs["reward_sum"]), jnp.sum(outs["reward_count"]))
-    rollout, window_filled = window_means(state.window, cfg.scenario)
+    rollout, window_filled = window_means(state.window, parts.kind.rollout_velocity)
     metrics.update(rollout)
     has_data.update({name: window_filled for name in rollout if name != "rollout/episodes"})
-    if cfg.multi_agent:
-        episodes = jnp.sum(outs["episodes_ended"])
-        metrics["rollout/env_episodes"] = episodes
-        average("rollout/trips_per_episode", jnp.sum(outs["trips"]), episodes)
-        average("rollout/early_terminations_per_episode", jnp.sum(outs["early_terminations"]), episodes)
+    parts.kind.chunk_metrics(outs, metrics, average)
     metrics["buffer/stored_rows"] = state.buffer.filled_rows
     # e.g. on fresh tracks: distinct tracks driven so far, and resets that found the feed empty
     metrics.update({f"rollout/{k}": v for k, v in parts.venv.counters(state.venv_state).items()})
@@ -312,19 +309,10 @@ def chunk_block(parts: MemberParts, state: RunState, start_vector_step):
 
 
 def evaluate_block(parts: MemberParts, env, eval_params):
-    """One device's block of members through their scenario's evaluation protocol (each on a fresh
-    evaluation key): §6.1's fixed tracks, the Intersection's fixed episodes, or a user's env's fixed
-    resets."""
-    cfg = parts.cfg
-    if cfg.multi_agent:
-        evaluate_one = make_evaluate_multiagent(env, eval_params, parts.agent, cfg.eval_episodes)
-    elif cfg.on_tracks:
-        evaluate_one = make_evaluate(env, eval_params, parts.agent, cfg.eval_episodes)
-    else:  # a user's env: fixed episodes from its own reset
-        steps = cfg.scenario.max_episode_steps
-        evaluate_one = make_evaluate_resets(
-            env, eval_params, parts.agent, cfg.eval_episodes, steps, cfg.eval_track_seed
-        )
+    """One device's block of members through their scenario kind's evaluation protocol (each on a
+    fresh evaluation key): §6.1's fixed tracks, the Intersection's fixed episodes, or a user's env's
+    fixed resets."""
+    evaluate_one = parts.kind.make_evaluate(parts.cfg, env, eval_params, parts.agent)
 
     def evaluate_member(state: RunState):
         key, sub = jax.random.split(state.eval_key)
@@ -333,11 +321,15 @@ def evaluate_block(parts: MemberParts, env, eval_params):
     return jax.vmap(evaluate_member, axis_name=MEMBERS_AXIS)
 
 
-def make_train(cfg: TrainConfig, env_and_params: tuple | None = None, devices: list | None = None) -> Trainer:
-    """Build the agent, the vector env and the jitted init / chunk / evaluate functions for ``cfg``,
-    spread over ``devices`` (default: the first device only)."""
-    env, params, eval_params = env_and_params if env_and_params is not None else make_envs(cfg)
-    parts = member_parts(cfg, env, params)
+def make_trainer(
+    cfg: TrainConfig, env_and_params: tuple | None = None, devices: list | None = None
+) -> Trainer:
+    """The :class:`Trainer` of ``cfg``: the agent, the vector env and the jitted init / chunk / evaluate
+    functions, as the run's scenario kind builds and steps them, spread over ``devices`` (default: the
+    first device only)."""
+    kind = scenario_kind(cfg)
+    env, params, eval_params = env_and_params if env_and_params is not None else kind.make_envs(cfg)
+    parts = member_parts(cfg, kind, env, params)
     mesh = Mesh(np.array(devices if devices is not None else jax.devices()[:1]), (MEMBER_AXIS,))
     members, replicated = P(MEMBER_AXIS), P()
     # check_vma=False: the env and agent code is written for one member and mixes unbatched loop

@@ -6,10 +6,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from xrl_jax.config import Scenario
-
 EPISODE_WINDOW = 100  # rollout metrics average over the last 100 finished episodes (§6.2)
-EARLY_TERMINATION_REWARD = -0.5  # ETR: terminated with a last reward below this (§6.1)
 
 
 @struct.dataclass
@@ -45,10 +42,11 @@ def window_add(window: EpisodeWindow, done, returns, lengths, early, velocity) -
     )
 
 
-def window_means(window: EpisodeWindow, scenario: Scenario) -> tuple[dict[str, jax.Array], jax.Array]:
+def window_means(window: EpisodeWindow, velocity: str | None) -> tuple[dict[str, jax.Array], jax.Array]:
     """Averages over the window, and whether it holds any episode yet (the averages are 0 until
-    then); multi-agent windows hold per-agent episodes (termination or the 60 s restart) and the
-    env's mean velocity instead of the track velocity; a user's env has only returns and lengths."""
+    then). With ``velocity`` (the metric name its kind gives the window's velocity: the track velocity
+    of racing, the env's mean velocity of the multi-agent env, whose windows hold per-agent episodes)
+    also the early-termination rate; without (a user's env), only returns and lengths."""
     filled = jnp.minimum(window.count, EPISODE_WINDOW)
     mask = jnp.arange(EPISODE_WINDOW) < filled
     denom = jnp.maximum(filled, 1)
@@ -61,8 +59,7 @@ def window_means(window: EpisodeWindow, scenario: Scenario) -> tuple[dict[str, j
         "rollout/avg_episode_length": mean(window.lengths),
         "rollout/episodes": window.count,
     }
-    if not scenario.custom:  # CarEnv's: a crash ends an episode with reward below -0.5
+    if velocity is not None:  # CarEnv's: a crash ends an episode with reward below -0.5
         means["rollout/early_termination_rate"] = mean(window.early)
-        velocity = "rollout/avg_mean_velocity" if scenario.multi_agent else "rollout/avg_track_velocity"
         means[velocity] = mean(window.track_velocity)
     return means, filled > 0

@@ -18,6 +18,7 @@ from xrl_jax.evaluation import make_evaluate, summarize_episodes
 from xrl_jax.runs.folder import RunFolderError, evaluation_file, member_fields, read_run_config, write_atomic
 from xrl_jax.runs.summary import aggregate_metrics, summary_metrics
 from xrl_jax.sets import MEMBERS_AXIS
+from xrl_jax.train.kinds import scenario_kind
 from xrl_jax.train.restore import load_trained_agents
 
 TRACK_SETS = ("train", "eval")  # the run's fixed training bank, its held-out evaluation tracks
@@ -41,15 +42,7 @@ def evaluate_run(
     on fresh ones, or more episodes than the set has tracks."""
     run = Path(run)
     cfg = read_run_config(run)
-    if not cfg.on_tracks:
-        raise RunFolderError(
-            f"{cfg.env} runs have no tracks; their evaluation episodes are in the run's eval/"
-        )
-    if tracks == "train" and cfg.fresh_tracks:
-        raise RunFolderError(
-            f"{run} trained on fresh tracks (train_tracks=0): no training track was driven twice, so the "
-            "held-out evaluation already measures generalisation; use --tracks eval"
-        )
+    scenario_kind(cfg).check_reevaluation(cfg, run, tracks)  # only racing runs have tracks
     cfg, trainer, agent_states = load_trained_agents(run)
     params = trainer.env_params if tracks == "train" else trainer.eval_params
     available = int(params.tracks.num_points.shape[0])

@@ -1,10 +1,13 @@
-"""One member's part of the compiled chunk: its run state, its start, and one vector step of its
-envs (act, step the envs, store the transitions, update), for racing envs and for the multi-agent
-intersection. The functions take the member's fixed pieces (:class:`MemberParts`) first;
-:mod:`xrl_jax.train.chunk` scans them, vmaps them over members and spreads them over devices.
+"""One member's part of the compiled chunk: its run state, its start, and the pieces every vector step
+is made of (act, step the envs, episode bookkeeping, sample and update). How a step stores its
+transitions and owes its updates is the scenario kind's (:mod:`xrl_jax.train.kinds`: one transition
+per env, or the packed transitions of every agent slot that acted). The functions take the member's
+fixed pieces (:class:`MemberParts`) first; :mod:`xrl_jax.train.chunk` scans them, vmaps them over
+members and spreads them over devices.
 
-The envs come as one vector env (:func:`xrl_jax.tracks.vector_env`) whatever restarts their
-episodes: auto-reset on a fixed track bank, a fresh-track feed, or the multi-agent env itself.
+The envs come as one vector env (the kind's ``vector_env``) whatever restarts their episodes:
+auto-reset on a fixed track bank or from a user's env's own reset, a fresh-track feed, or the
+multi-agent env itself.
 """
 
 from __future__ import annotations
@@ -21,10 +24,10 @@ from flax import struct
 from envs.core import VmapWrapper, action_size
 from envs.track_feed import join_states, split_states
 from xrl_jax.agents import Agent, AgentState, make_agent
-from xrl_jax.buffer import ReplayBuffer, buffer_add, buffer_add_packed, buffer_init, buffer_sample
+from xrl_jax.buffer import ReplayBuffer, buffer_init, buffer_sample
 from xrl_jax.config import TrainConfig
-from xrl_jax.tracks import vector_env
-from xrl_jax.train.episodes import EARLY_TERMINATION_REWARD, EpisodeWindow, window_add, window_init
+from xrl_jax.evaluation import EARLY_TERMINATION_REWARD
+from xrl_jax.train.episodes import EpisodeWindow, window_add, window_init
 
 
 @struct.dataclass
@@ -58,10 +61,12 @@ class RunState:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class MemberParts:
-    """What one member's steps are built from: the config, its vector env and the params it steps
-    with, the agent, and the shapes that the steps' branches must agree on."""
+    """What one member's steps are built from: the config, its scenario kind (:mod:`xrl_jax.train.kinds`),
+    its vector env and the params it steps with, the agent, and the shapes that the steps' branches
+    must agree on."""
 
     cfg: TrainConfig
+    kind: Any  # the scenario kind: how a vector step stores and updates (xrl_jax.train.kinds.ScenarioKind)
     venv: VmapWrapper
     params: Any
     agent: Agent
@@ -71,16 +76,18 @@ class MemberParts:
     metric_shapes: Any = None  # the update's metrics
 
 
-def member_parts(cfg: TrainConfig, env, params) -> MemberParts:
-    """The agent and the vector env for ``env`` (racing or multi-agent) under ``cfg``."""
+def member_parts(cfg: TrainConfig, kind, env, params) -> MemberParts:
+    """The agent and the vector env for ``env`` of scenario kind ``kind`` under ``cfg``."""
     obs_shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0), params)[0]
-    actors = (cfg.num_envs,)
-    if cfg.multi_agent:  # observations carry a leading agent-slot axis; the agent sees one agent's view
-        actors = (cfg.num_envs, int(env.num_agents))
-        obs_shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[1:], s.dtype), obs_shapes)
+    # Actors: envs, and per env the kind's agent slots, whose observations carry those leading axes;
+    # the agent sees one agent's view.
+    slots = kind.agent_slots(env)
+    actors = (cfg.num_envs, *slots)
+    obs_shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[len(slots) :], s.dtype), obs_shapes)
     obs_example = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), obs_shapes)
     agent = make_agent(cfg.agent, obs_example, action_size(env.action_space(params)))
-    parts = MemberParts(cfg, vector_env(cfg, env), params, agent, obs_example, actors, jnp.result_type(float))
+    venv = kind.vector_env(cfg, env)
+    parts = MemberParts(cfg, kind, venv, params, agent, obs_example, actors, jnp.result_type(float))
     abstract_agent = jax.eval_shape(agent.init, jax.random.PRNGKey(0), obs_example)
     abstract_buffer = jax.eval_shape(lambda: new_buffer(parts, max(cfg.batch_size, math.prod(actors))))
     update = functools.partial(sample_and_update, parts)
@@ -89,9 +96,9 @@ def member_parts(cfg: TrainConfig, env, params) -> MemberParts:
 
 
 def new_buffer(parts: MemberParts, capacity: int) -> ReplayBuffer:
-    """An empty replay buffer; multi-agent transitions are packed, one per row."""
+    """An empty replay buffer of the kind's columns (one per env, or packed transitions one per row)."""
     cfg = parts.cfg
-    columns = 1 if cfg.multi_agent else cfg.num_envs
+    columns = parts.kind.buffer_columns(cfg)
     action_example = parts.agent.random_action(jax.random.PRNGKey(0))
     return buffer_init(parts.obs_example, action_example, capacity, columns, layout=cfg.buffer_layout)
 
@@ -178,105 +185,6 @@ def episode_bookkeeping(parts: MemberParts, state: RunState, reward, counted, do
     }
 
 
-def racing_step(parts: MemberParts, state: RunState, t):
-    """One step of E racing envs: E transitions stored, then (after warm-up) one gradient step per
-    transition, as a ``lax.scan`` over E sampled batches."""
-    num_envs, warmup = parts.cfg.num_envs, parts.cfg.warmup_steps
-    key, update_key, agent_state, action, _, step = act_and_step(parts, state, t)
-    next_obs, venv_state, reward, terminated, truncated, info = step
-    first_transition = t * num_envs
-    buffer = buffer_add(
-        state.buffer, state.obs, action, reward, terminated, truncated,
-        next_obs=info["final_obs"] if parts.cfg.buffer_layout == "explicit" else None,
-    )  # fmt: skip
-
-    def scan_updates(agent_state, inputs):
-        j, key = inputs
-        active = first_transition + j >= warmup  # unbatched over seeds: a real branch
-        agent_state, metrics = jax.lax.cond(
-            active,
-            lambda a: sample_and_update(parts, a, buffer, key),
-            lambda a: (a, zero_metrics(parts)),
-            agent_state,
-        )
-        return agent_state, (metrics, active)
-
-    agent_state, (metrics, updated) = jax.lax.scan(
-        scan_updates, agent_state, (jnp.arange(num_envs), jax.random.split(update_key, num_envs))
-    )
-    done = terminated | truncated
-    new_state = state.with_venv_state(
-        venv_state, agent=agent_state, buffer=buffer, obs=next_obs, key=key,
-        **episode_bookkeeping(parts, state, reward, jnp.ones(done.shape, bool), done, terminated,
-                              info.get("avg_track_velocity", 0.0)),  # a user's env has none
-    )  # fmt: skip
-    out = {
-        "reward_sum": jnp.sum(jnp.where(truncated, 0.0, reward)),
-        "reward_count": jnp.sum(~truncated, dtype=jnp.int32),
-        "metrics": jax.tree.map(lambda m: jnp.sum(jnp.where(updated, m, 0), axis=0), metrics),
-        "updates": jnp.sum(updated, dtype=jnp.int32),
-    }
-    return new_state, out
-
-
-def multi_agent_step(parts: MemberParts, state: RunState, t):
-    """One step of E multi-agent envs: every agent alive at the start of the step acts; its
-    transition is stored (packed) and, after warm-up, followed by one gradient step
-    (docs/carenv-intersection.md §8.5: updates = agent transitions, 0..8 per env step, as an exact
-    ``while_loop``)."""
-    key, update_key, agent_state, action, warm_env, step = act_and_step(parts, state, t)
-    next_obs, venv_state, reward, terminated, truncated, info = step
-    acted = info["acted"]
-
-    def flat(x):
-        return x.reshape((math.prod(parts.actors), *x.shape[2:]))
-
-    buffer = buffer_add_packed(
-        state.buffer,
-        jax.tree.map(flat, state.obs),
-        flat(action),
-        flat(reward),
-        flat(terminated & acted),  # 60 s restarts stay bootstrapped (docs/carenv-intersection.md §9 Q8)
-        jax.tree.map(flat, info["final_obs"]),
-        flat(acted),
-    )
-    owed = jnp.sum(acted & ~warm_env[:, None], dtype=jnp.int32)
-
-    def keep_updating(carry):
-        return carry[0] < owed
-
-    def one_update(carry):
-        count, agent_state, key, totals = carry
-        key, sub = jax.random.split(key)
-        agent_state, metrics = sample_and_update(parts, agent_state, buffer, sub)
-        return count + 1, agent_state, key, jax.tree.map(jnp.add, totals, metrics)
-
-    _, agent_state, _, metric_sums = jax.lax.while_loop(
-        keep_updating, one_update, (jnp.zeros((), jnp.int32), agent_state, update_key, zero_metrics(parts))
-    )
-    reward = jnp.where(acted, reward, 0.0)
-    agent_done = acted & (terminated | truncated)
-    ended = info["episode_end"]
-    new_state = state.with_venv_state(
-        venv_state, agent=agent_state, buffer=buffer, obs=next_obs, key=key,
-        **episode_bookkeeping(parts, state, reward, acted, agent_done, terminated,
-                              info["mean_velocity"][:, None]),
-    )  # fmt: skip
-    out = {
-        "reward_sum": jnp.sum(reward),
-        "reward_count": jnp.sum(acted, dtype=jnp.int32),
-        "metrics": metric_sums,
-        "updates": owed,
-        "episodes_ended": jnp.sum(ended, dtype=jnp.int32),
-        "trips": jnp.sum(jnp.where(ended, info["trips_completed"], 0)),
-        "early_terminations": jnp.sum(
-            jnp.where(ended, info["come_off_vehicles"] + info["collided_vehicles"], 0)
-        ),
-    }
-    return new_state, out
-
-
 def vector_step(parts: MemberParts):
-    """``(state, t) -> (state, outputs)``: one vector step of the member's envs."""
-    step = multi_agent_step if parts.cfg.multi_agent else racing_step
-    return lambda state, t: step(parts, state, t)
+    """``(state, t) -> (state, outputs)``: one vector step of the member's envs, as its kind steps them."""
+    return lambda state, t: parts.kind.vector_step(parts, state, t)

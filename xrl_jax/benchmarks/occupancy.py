@@ -12,14 +12,16 @@ docs/performance.md describes and records what the observations held:
   ones the trainer stores and learns from), and how many vehicles acted per env step.
 
 :func:`rollout_observations` returns the observations themselves (the update benchmarks sample
-their batches from them); :func:`summarise` turns them into the table that ``docs/set_occupancy.json``
-holds (:func:`measure_occupancy`, i.e. ``python experiments/costs.py --measure-occupancy``, rewrites
-it) and that the cost estimates read (:func:`load_occupancy`, :func:`overflow_probability`,
-:func:`update_cost`).
+their batches from them); :func:`summarise` turns them into the table that ``set_occupancy.json``
+beside this module holds (package data: an installed package reads it too;
+:func:`measure_occupancy`, i.e. ``python experiments/costs.py --measure-occupancy``, rewrites it) and
+that the cost estimates read (:func:`load_occupancy`, :func:`overflow_probability`,
+:func:`update_cost`, with :func:`~xrl_jax.benchmarks.timing.update_flops`).
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -33,11 +35,12 @@ import envs
 from envs import hand_controller
 from xrl_jax import config
 from xrl_jax.agents import make_agent
+from xrl_jax.benchmarks.timing import update_flops
 from xrl_jax.sets import Packing
 from xrl_jax.tracks import cached_track_bank, racing_env
 
 SCENARIOS = ("tracking", "country_road", "intersection")
-OCCUPANCY_FILE = Path(__file__).resolve().parent.parent / "docs" / "set_occupancy.json"
+OCCUPANCY_FILE = Path(__file__).resolve().parent / "set_occupancy.json"  # package data (pyproject.toml)
 SET_KEYS = {name: config.scenario(name).set_key for name in SCENARIOS}
 DEFAULTS = {
     "tracking": {"num_tracks": 32, "steps": 600, "seed": 0},
@@ -108,6 +111,14 @@ def _intersection_observations(num_envs: int, steps: int, seed: int) -> dict[str
     }
 
 
+# How each scenario is driven (the module's doc), taking its DEFAULTS' settings.
+ROLLOUTS = {
+    "tracking": functools.partial(_racing_observations, "tracking"),
+    "country_road": functools.partial(_racing_observations, "country_road"),
+    "intersection": _intersection_observations,
+}
+
+
 def rollout_observations(scenario: str, **settings: int) -> dict[str, Any]:
     """Real observations of ``scenario`` (the protocol of the module doc; ``settings`` override
     :data:`DEFAULTS`): ``{"observations": {key: (M, ...)}, "policy": str, ...}``."""
@@ -117,11 +128,7 @@ def rollout_observations(scenario: str, **settings: int) -> dict[str, Any]:
     if unknown:
         raise ValueError(f"unknown setting(s) {unknown} for {scenario}; valid: {sorted(DEFAULTS[scenario])}")
     chosen = {**DEFAULTS[scenario], **settings}
-    if scenario == "intersection":
-        out = _intersection_observations(chosen["num_envs"], chosen["steps"], chosen["seed"])
-    else:
-        out = _racing_observations(scenario, chosen["num_tracks"], chosen["steps"], chosen["seed"])
-    return {**out, "settings": chosen}
+    return {**ROLLOUTS[scenario](**chosen), "settings": chosen}
 
 
 def present_counts(observations: dict[str, np.ndarray], scenario: str) -> np.ndarray:
@@ -162,7 +169,7 @@ def measure_occupancy(path: str | Path = OCCUPANCY_FILE) -> dict[str, dict[str, 
 
 
 def load_occupancy(path: str | Path = OCCUPANCY_FILE) -> dict[str, dict[str, Any]]:
-    """The measured table (``docs/set_occupancy.json``), checked for the fields the estimates use."""
+    """The measured table (``set_occupancy.json``), checked for the fields the estimates use."""
     path = Path(path)
     try:
         table = json.loads(path.read_text())
@@ -209,25 +216,6 @@ def scenario_of(agent) -> str:
         if key == agent.obs_shape.set_key:
             return scenario
     raise ValueError(f"no measured scenario has the set {agent.obs_shape.set_key!r}")
-
-
-def update_flops(agent, batch_size: int) -> float:
-    """XLA's FLOPs of one gradient step on a batch of ``batch_size`` (cost analysis of the lowered
-    update, shapes only: nothing compiled or run). A conditional counts as its larger branch."""
-    obs = agent.dummy_observation((batch_size,))
-    flags = jnp.zeros(batch_size, bool)
-    batch = {
-        "obs": obs,
-        "action": agent.random_action(jax.random.PRNGKey(0), (batch_size,)),
-        "reward": jnp.zeros(batch_size),
-        "next_obs": obs,
-        "terminated": flags,
-        "truncated": flags,
-    }
-    state = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
-    cost = jax.jit(agent.update).lower(jax.random.PRNGKey(0), state, batch).cost_analysis()
-    cost = cost[0] if isinstance(cost, list) else cost
-    return float(cost.get("flops", float("nan")))
 
 
 def fallback_probability(agent, batch_size: int, members: int = 1, table: dict | None = None) -> float:
@@ -292,5 +280,4 @@ __all__ = [
     "scenario_of",
     "summarise",
     "update_cost",
-    "update_flops",
 ]
