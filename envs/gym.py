@@ -6,12 +6,12 @@
   the next episode and ``infos["final_obs"]`` holds the ending observation (a dict of arrays over all
   envs; rows with ``infos["_final_obs"] == False`` repeat the returned observation).
 
-Actions are validated on the host: anything outside the action space (wrong shape, a complex dtype,
-NaN or inf, values outside [-1, 1], a discrete index outside [0, 12)) raises ``ValueError`` before
-the env is touched. ``GymEnv.step`` before ``reset()``, or after an episode has terminated or been
-truncated, raises :class:`ResetNeeded` (Gymnasium's order error); the vector env resets by itself.
-Info values are numpy arrays/scalars (see ``envs.racing`` for the keys). Seeding: ``reset(seed=k)``
-restarts the env's key stream at ``PRNGKey(k)``; ``reset()`` continues it.
+Actions are validated on the host: anything outside the action space (wrong shape, a complex dtype, a
+masked array, NaN or inf, values outside [-1, 1], a discrete index outside [0, 12)) raises
+``ValueError`` before the env is touched. ``GymEnv.step`` before ``reset()``, or after an episode has
+terminated or been truncated, raises :class:`ResetNeeded` (Gymnasium's order error); the vector env
+resets by itself. Info values are numpy arrays/scalars (see ``envs.racing`` for the keys). Seeding:
+``reset(seed=k)`` restarts the env's key stream at ``PRNGKey(k)``; ``reset()`` continues it.
 """
 
 from __future__ import annotations
@@ -146,6 +146,8 @@ class GymVectorEnv(VectorEnv):
         return _obs_to_numpy(obs), {}
 
     def _check_actions(self, actions) -> np.ndarray:
+        if np.ma.isMaskedArray(actions):  # np.asarray would keep the masked entries' values
+            raise ValueError(f"actions must be a plain array, got a masked array: {actions!r}")
         actions = np.asarray(actions)
         if actions.shape[:1] != (self.num_envs,):
             raise ValueError(f"expected a batch of {self.num_envs} actions, got shape {actions.shape}")
