@@ -25,6 +25,7 @@ import numpy as np
 
 from xrl_jax.config import TrainConfig
 from xrl_jax.config.scenarios import known_envs
+from xrl_jax.config.user_envs import record_differences, user_env_record
 
 LOCK_NAME = ".lock"
 TEMP_MARK = ".tmp"  # ``.<name>.tmp<pid>``: what write_atomic leaves behind when it is killed mid-write
@@ -156,7 +157,9 @@ def read_document(path: Path, what: str) -> dict:
 
 
 def read_run_config(folder: str | Path):
-    """The full :class:`~xrl_jax.config.TrainConfig` of a results folder (its ``config.json``)."""
+    """The full :class:`~xrl_jax.config.TrainConfig` of a results folder (its ``config.json``). A run on
+    a user's env is refused (one line) when the env registered now is not the run's: another layout,
+    action space, time limit or registering module (:mod:`xrl_jax.config.user_envs`)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise RunFolderError(f"results folder {folder} does not exist")
@@ -170,6 +173,14 @@ def read_run_config(folder: str | Path):
             f"{folder} trained on {env!r}, an env this process has not registered: --import the module "
             "that registers it (xrl_jax.register_env)"
         )
+    stored = document.get("user_env")
+    if isinstance(stored, dict):  # a user's env: the one registered now must be the run's
+        differences = record_differences(stored, user_env_record(env))
+        if differences:
+            raise RunFolderError(
+                f"{folder} trained on {env!r} as module {stored.get('module')!r} registered it, not as this "
+                f"process has it ({'; '.join(differences)}): --import the module the run was trained with"
+            )
     try:
         return TrainConfig.from_dict(document["config"])
     except (ValueError, KeyError, TypeError) as err:
