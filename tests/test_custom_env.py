@@ -288,3 +288,17 @@ def test_a_resume_with_another_env_than_the_run_s_is_refused_and_moves_nothing(
     assert (checkpoint / "state").read_text() == "the run's state"
     with pytest.raises(RunFolderError, match="registered now"):  # the folder's readers: explain, evaluate
         read_run_config(out)
+
+
+def test_evaluate_py_imports_the_module_it_tells_the_user_to_import(example, capsys, tmp_path):
+    """evaluate.py said "--import the module that registers it" and had no --import; now it has one,
+    and a user's env run gets evaluate.py's own answer (its episodes are in eval/)."""
+    from xrl_jax.runs.provenance import config_document
+
+    out = tmp_path / "run"
+    out.mkdir()
+    document = config_document(resolve_config("nearest_goal", "xdsac", "smoke"), ["run.py"])
+    (out / "config.json").write_text(json.dumps(document, sort_keys=True))
+    evaluate = load_script("evaluate", "evaluate_custom_env")
+    status, _, err = call(evaluate, capsys, "--import", str(EXAMPLE), str(out))
+    one_line_error(status, err, "nearest_goal runs have no tracks")
