@@ -19,7 +19,7 @@ import os
 import socket
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -140,6 +140,39 @@ def read_rows(path: Path) -> list[dict]:
         if isinstance(row, dict):
             rows.append(row)
     return rows
+
+
+_NONFINITE = ("nan", "inf", "-inf")  # encode_metric's spelling of non-finite values
+
+
+def _is_nonfinite(value) -> bool:
+    if isinstance(value, list):
+        return any(_is_nonfinite(item) for item in value)
+    return isinstance(value, str) and value in _NONFINITE
+
+
+class Divergence(NamedTuple):
+    """Where a run's records first hold a non-finite value (ordered by step)."""
+
+    step: int
+    member: str  # the member's file stem
+    metric: str
+
+    def __str__(self) -> str:
+        return f"{self.member.replace('_', ' ')} by step {self.step:,} ({self.metric} not finite)"
+
+
+def first_nonfinite_metric(folder: str | Path) -> Divergence | None:
+    """The earliest metrics line holding a non-finite value: the run diverged by that step (the trainer
+    stops there, keeping the last good checkpoint); None if no line does."""
+    found = []
+    for path in sorted(run_paths(Path(folder))["metrics"].glob("*.jsonl")):
+        for row in read_rows(path):
+            bad = [key for key, value in row.items() if _is_nonfinite(value)]
+            if bad and isinstance(row.get("step"), int):
+                found.append(Divergence(row["step"], path.stem, bad[0]))
+                break
+    return min(found, default=None)
 
 
 def read_document(path: Path, what: str) -> dict:
