@@ -62,6 +62,15 @@ def test_masked_actions_are_rejected(track):
         vec.step(np.ma.masked_array(np.zeros((2, 3)), mask=np.eye(2, 3, dtype=bool)))
 
 
+def test_a_multi_agent_env_is_refused_in_one_line():
+    """The Intersection's observations carry 8 agent slots that the per-agent Gymnasium spaces lack:
+    the adaptor took it and failed at the first step, or returned observations outside its space."""
+    for adaptor in (GymEnv, GymVectorEnv):
+        with pytest.raises(ValueError, match="single-agent envs; Intersection is multi-agent") as error:
+            adaptor("intersection")
+        assert "\n" not in str(error.value)
+
+
 def test_complex_actions_are_rejected(track):
     # The cast to float32 would drop the imaginary part with only a ComplexWarning.
     env = GymEnv("country_road", track=track)
