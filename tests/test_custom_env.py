@@ -302,3 +302,16 @@ def test_evaluate_py_imports_the_module_it_tells_the_user_to_import(example, cap
     evaluate = load_script("evaluate", "evaluate_custom_env")
     status, _, err = call(evaluate, capsys, "--import", str(EXAMPLE), str(out))
     one_line_error(status, err, "nearest_goal runs have no tracks")
+
+
+def test_a_script_run_as_main_records_the_name_its_import_gives_it(points):
+    """``python docs/examples/nearest_goal.py`` registers from ``__main__``; resuming or explaining the
+    run with ``--import docs/examples/nearest_goal.py`` registers from ``nearest_goal``: one module."""
+    from xrl_jax.config.user_envs import user_env_record
+
+    namespace = {"__name__": "__main__", "__file__": "/somewhere/points_module.py", "__spec__": None,
+                 "register_env": xrl_jax.register_env, "Points": Points}  # fmt: skip
+    exec("register_env('points', lambda: (Points(), None), 20)", namespace)
+    as_script = user_env_record(points)
+    register_points_from("points_module")
+    assert as_script == user_env_record(points) and as_script["module"] == "points_module"

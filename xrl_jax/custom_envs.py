@@ -19,6 +19,7 @@ from __future__ import annotations
 import inspect
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -59,7 +60,7 @@ def register_env(
     A run records the calling module, the layout, the action space and ``max_episode_steps``
     (:mod:`xrl_jax.config.user_envs`): a resume or a reader with other ones is refused.
     """
-    module = sys._getframe(1).f_globals.get("__name__")  # the module a script --imports
+    module = _module_name(sys._getframe(1).f_globals)  # the module a script --imports
     if name in BUILT_IN or name in env_registry.ENV_NAMES:
         raise ConfigError(f"{name!r} is a built-in scenario; register your env under another name")
     env, params = _made(name, factory)
@@ -94,6 +95,18 @@ def unregister_env(name: str) -> None:
     env_registry.unregister(name)
     unregister_scenario(name)
     user_envs.forget(name)
+
+
+def _module_name(namespace: dict) -> str | None:
+    """The name ``--import`` gives the module that ``namespace`` belongs to: its own, or for a script
+    run as ``__main__``, its ``-m`` name or its file's stem (``--import path/name.py`` names it so)."""
+    name = namespace.get("__name__")
+    if name != "__main__":
+        return name
+    spec = namespace.get("__spec__")
+    if spec is not None and getattr(spec, "name", None):
+        return spec.name
+    return Path(namespace["__file__"]).stem if namespace.get("__file__") else name
 
 
 def _made(name: str, factory) -> tuple[Environment, Any]:
