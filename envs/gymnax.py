@@ -95,6 +95,8 @@ class GymnaxEnv(environment.Environment):
 
     def __init__(self, scenario: core.Environment, scenario_params: Any, flat_obs: bool = False):
         _check_flat_obs(flat_obs)
+        if not isinstance(scenario, core.Environment):  # the adaptor asks it num_agents, max_episode_steps
+            raise TypeError(f"envs.gymnax adapts an envs.core.Environment, got {type(scenario).__name__}")
         self.scenario = scenario
         self.scenario_params = scenario_params
         self.flat_obs = bool(flat_obs)

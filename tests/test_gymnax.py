@@ -143,6 +143,8 @@ def bad_input_cases():
          "episode_steps must be a positive int"),
         ("flat_obs as a word", lambda: carenv_gymnax.make("tracking", flat_obs="no"), ValueError,
          "flat_obs must be True or False, got 'no'"),
+        ("not an envs Environment", lambda: carenv_gymnax.GymnaxEnv(object(), None), TypeError,
+         "adapts an envs.core.Environment, got object"),
     ]  # fmt: skip
 
 
