@@ -153,7 +153,29 @@ class Environment(Generic[TState, TParams]):
 
     ``reset``/``step`` accept ``params=None`` (meaning ``default_params``) for convenience; pass
     params explicitly inside jitted code to avoid rebuilding them at trace time.
+
+    Two questions every env answers, so that adaptors and trainers ask it rather than its type:
+    :attr:`num_agents` (how many agents act; :attr:`multi_agent`) and :meth:`max_episode_steps`
+    (its time limit).
     """
+
+    num_agents: int = 1
+    """How many agents act in one env. 1: observation, action and reward have no agent axis. More
+    (the Intersection's 8 vehicle slots): each carries a leading axis of that size, the spaces
+    describe one agent, and the episode's flags stay scalars."""
+
+    @property
+    def multi_agent(self) -> bool:
+        """Whether observations, actions and rewards carry a leading agent axis (``num_agents > 1``)."""
+        return self.num_agents > 1
+
+    def max_episode_steps(self, params: TParams | None = None) -> int | None:
+        """The step count at which the env truncates an episode, or None when it has none it can
+        say. The default reads ``params.max_steps`` (the racing envs' field) if the params have one;
+        an env that keeps its limit elsewhere overrides this."""
+        params = self.default_params if params is None else params
+        limit = getattr(params, "max_steps", None)
+        return None if limit is None else int(limit)
 
     @property
     def default_params(self) -> TParams:
@@ -207,6 +229,13 @@ class Wrapper(Environment):
     @property
     def name(self) -> str:
         return self._env.name
+
+    @property
+    def num_agents(self) -> int:
+        return self._env.num_agents
+
+    def max_episode_steps(self, params=None):
+        return self._env.max_episode_steps(params)
 
     def reset_env(self, key, params):
         return self._env.reset_env(key, params)

@@ -6,12 +6,13 @@
   the next episode and ``infos["final_obs"]`` holds the ending observation (a dict of arrays over all
   envs; rows with ``infos["_final_obs"] == False`` repeat the returned observation).
 
-Actions are validated on the host: anything outside the action space (wrong shape, a complex dtype,
-NaN or inf, values outside [-1, 1], a discrete index outside [0, 12)) raises ``ValueError`` before
-the env is touched. ``GymEnv.step`` before ``reset()``, or after an episode has terminated or been
-truncated, raises :class:`ResetNeeded` (Gymnasium's order error); the vector env resets by itself.
-Info values are numpy arrays/scalars (see ``envs.racing`` for the keys). Seeding: ``reset(seed=k)``
-restarts the env's key stream at ``PRNGKey(k)``; ``reset()`` continues it.
+Single-agent envs only (a multi-agent one is refused). Actions are validated on the host: anything
+outside the action space (wrong shape, a complex dtype, a masked array, NaN or inf, values outside [-1,
+1], a discrete index outside [0, 12)) raises ``ValueError`` before the env is touched. ``GymEnv.step``
+before ``reset()``, or after an episode has terminated or been truncated, raises :class:`ResetNeeded`
+(Gymnasium's order error); the vector env resets by itself. Info values are numpy arrays/scalars (see
+``envs.racing`` for the keys). Seeding: ``reset(seed=k)`` restarts the env's key stream at
+``PRNGKey(k)``; ``reset()`` continues it.
 """
 
 from __future__ import annotations
@@ -57,12 +58,19 @@ def _obs_to_numpy(obs: dict) -> dict:
 def _resolve(env_or_name, params, overrides) -> tuple[RacingEnv, RacingParams]:
     if isinstance(env_or_name, str):
         env, made = make(env_or_name, **overrides)
-        return env, made if params is None else params
-    if overrides:
+        env, params = env, made if params is None else params
+    elif overrides:
         raise ValueError("overrides are only accepted together with an env name")
-    if params is None:
+    elif params is None:
         raise ValueError("pass params together with an env instance (see envs.make)")
-    return env_or_name, params
+    else:
+        env = env_or_name
+    if env.multi_agent:  # its observations and actions carry an agent axis that Gymnasium's spaces lack
+        raise ValueError(
+            f"the Gymnasium adaptors take single-agent envs; {env.name} is multi-agent ({env.num_agents} "
+            "agent slots): use the env itself (envs.make) or envs.gymnax"
+        )
+    return env, params
 
 
 class GymEnv(gymnasium.Env):
@@ -146,6 +154,8 @@ class GymVectorEnv(VectorEnv):
         return _obs_to_numpy(obs), {}
 
     def _check_actions(self, actions) -> np.ndarray:
+        if np.ma.isMaskedArray(actions):  # np.asarray would keep the masked entries' values
+            raise ValueError(f"actions must be a plain array, got a masked array: {actions!r}")
         actions = np.asarray(actions)
         if actions.shape[:1] != (self.num_envs,):
             raise ValueError(f"expected a batch of {self.num_envs} actions, got shape {actions.shape}")

@@ -38,11 +38,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from gymnax.environments import environment, spaces
-from gymnax.wrappers import LegacyStepAPIWrapper
+
+try:
+    from gymnax.environments import environment, spaces
+    from gymnax.wrappers import LegacyStepAPIWrapper
+except ModuleNotFoundError as error:  # only the extra is missing: say how to install it
+    if not (error.name or "").startswith("gymnax"):
+        raise
+    raise ModuleNotFoundError(
+        f"envs.gymnax needs the gymnax extra: pip install 'xrl-jax[gymnax]' (no module {error.name!r})",
+        name=error.name,
+    ) from None
 
 from envs import core
-from envs.intersection import IntersectionEnv
 from envs.registry import make as make_scenario
 
 
@@ -56,9 +64,11 @@ class GymnaxState(environment.EnvState):
 
 @struct.dataclass
 class GymnaxParams(environment.EnvParams):
-    """gymnax's params around a scenario's own; ``max_steps_in_episode`` is the scenario's time limit."""
+    """gymnax's params around a scenario's own; ``max_steps_in_episode`` is the scenario's time limit
+    and ``made_for`` the name of the env they were made for (None: made by hand, not checked)."""
 
     inner: Any = None
+    made_for: str | None = struct.field(pytree_node=False, default=None)
 
 
 def to_gymnax_space(space: core.Space) -> spaces.Space:
@@ -84,10 +94,13 @@ class GymnaxEnv(environment.Environment):
     """A scenario of :func:`envs.make` behind gymnax's ``Environment`` interface (module docstring)."""
 
     def __init__(self, scenario: core.Environment, scenario_params: Any, flat_obs: bool = False):
+        _check_flat_obs(flat_obs)
+        if not isinstance(scenario, core.Environment):  # the adaptor asks it num_agents, max_episode_steps
+            raise TypeError(f"envs.gymnax adapts an envs.core.Environment, got {type(scenario).__name__}")
         self.scenario = scenario
         self.scenario_params = scenario_params
         self.flat_obs = bool(flat_obs)
-        self.multi_agent = isinstance(scenario, IntersectionEnv)
+        self.multi_agent = scenario.multi_agent
 
     # Equal configurations hash equal, so gymnax's jitted step (``self`` is static) is shared between
     # instances built alike; the params are not part of it: they are an argument of every call.
@@ -110,10 +123,48 @@ class GymnaxEnv(environment.Environment):
     @property
     def default_params(self) -> GymnaxParams:
         params = self.scenario_params
-        limit = params.episode_steps if self.multi_agent else getattr(params, "max_steps", None)
-        if limit is None:  # a user's env (envs.register) whose params do not say
-            raise ValueError(f"{self.name}: gymnax needs the time limit of an episode as params.max_steps")
-        return GymnaxParams(max_steps_in_episode=int(limit), inner=params)
+        limit = self.scenario.max_episode_steps(params)
+        if limit is None:  # a user's env (envs.register) that does not say
+            raise ValueError(
+                f"{self.name}: gymnax needs the time limit of an episode: give the env a "
+                "max_episode_steps(params) method (envs.core.Environment) or its params a max_steps field"
+            )
+        if limit < 1:
+            raise ValueError(f"{self.name}: an episode's time limit must be at least 1 step, got {limit}")
+        return GymnaxParams(max_steps_in_episode=int(limit), inner=params, made_for=self.name)
+
+    def _check_params(self, params: Any) -> Any:
+        """The scenario's own params inside ``params``, or a one-line error: params of gymnax's own
+        (``EnvParams()``) or of another scenario would otherwise fail deep inside, or run silently."""
+        if not isinstance(params, GymnaxParams):
+            raise TypeError(
+                f"{self.name}: params must be this env's GymnaxParams (envs.gymnax.make returns them, as "
+                f"does env.default_params), got {type(params).__name__}"
+            )
+        made_for = params.made_for
+        if made_for is not None and made_for != self.name:
+            raise ValueError(f"{self.name}: these params were made for {made_for!r}; use env.default_params")
+        expected = type(self.scenario_params)
+        if not isinstance(params.inner, expected):
+            raise TypeError(
+                f"{self.name}: params.inner must be the scenario's {expected.__name__}, "
+                f"got {type(params.inner).__name__}"
+            )
+        return params.inner
+
+    def _check_action(self, action: Any) -> jax.Array:
+        """``action`` as an array, or a one-line error when its shape is not the action space's
+        (a batch of envs is ``jax.vmap`` of ``step``, not a batch of actions)."""
+        action = jnp.asarray(action)
+        one = self.action_space().shape
+        expected = (self.scenario.num_agents, *one) if self.multi_agent else tuple(one)
+        if action.shape != expected:
+            per = f" ({self.scenario.num_agents} agent slots)" if self.multi_agent else ""
+            raise ValueError(
+                f"{self.name}: an action has shape {expected}{per}, got {action.shape}; "
+                "for a batch of envs, jax.vmap the step"
+            )
+        return action
 
     @property
     def num_actions(self) -> int:
@@ -138,14 +189,14 @@ class GymnaxEnv(environment.Environment):
         return flatten_observation(obs) if self.flat_obs else obs
 
     def reset_env(self, key: jax.Array, params: GymnaxParams) -> tuple[Any, GymnaxState]:
-        obs, inner = self.scenario.reset_env(key, params.inner)
+        obs, inner = self.scenario.reset_env(key, self._check_params(params))
         return self._observe(obs), GymnaxState(
             time=jnp.zeros((), jnp.int32), inner=inner, truncated=jnp.zeros((), bool)
         )
 
     def step_env(self, key: jax.Array, state: GymnaxState, action: Any, params: GymnaxParams):
         obs, inner, reward, terminated, truncated, info = self.scenario.step_env(
-            key, state.inner, action, params.inner
+            key, state.inner, self._check_action(action), self._check_params(params)
         )
         if self.multi_agent:
             # The scenario restarts itself at the 60 s end; gymnax's step resets instead, from the
@@ -165,8 +216,15 @@ class GymnaxEnv(environment.Environment):
         raise NotImplementedError("the scenario decides termination in step_env; read step's flags")
 
 
+def _check_flat_obs(flat_obs: Any) -> None:
+    if not isinstance(flat_obs, (bool, np.bool_)):  # "no" would be truthy: take booleans only
+        raise ValueError(f"flat_obs must be True or False, got {flat_obs!r}")
+
+
 def make(name: str, flat_obs: bool = False, **overrides) -> tuple[GymnaxEnv, GymnaxParams]:
-    """``gymnax.make`` for the scenarios: ``name`` and ``overrides`` as :func:`envs.make` takes them."""
+    """``gymnax.make`` for the scenarios: ``name`` and ``overrides`` as :func:`envs.make` takes them.
+    Raises ``ValueError`` (one line) for a bad ``flat_obs``, name, override or time limit."""
+    _check_flat_obs(flat_obs)  # before the scenario is built (a track bank takes a while)
     scenario, scenario_params = make_scenario(name, **overrides)
     env = GymnaxEnv(scenario, scenario_params, flat_obs=flat_obs)
     return env, env.default_params

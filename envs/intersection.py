@@ -99,6 +99,10 @@ class IntersectionEnv(Environment):
     def default_params(self) -> IntersectionParams:
         return IntersectionParams()
 
+    def max_episode_steps(self, params: IntersectionParams | None = None) -> int:
+        """The 60 s restart (``params.episode_steps``), after which the env starts a new episode."""
+        return int((self.default_params if params is None else params).episode_steps)
+
     def action_space(self, params: IntersectionParams | None = None):
         """Per-agent action space."""
         if self.discrete:

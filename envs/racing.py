@@ -360,7 +360,10 @@ def _start_bank(env: RacingEnv, params: RacingParams):
 
 def check_action(env: RacingEnv, action) -> np.ndarray:
     """Host-side validation used by the Gymnasium adaptors: raises ValueError outside the space, on
-    NaN/inf, and on a complex action (casting would silently drop its imaginary part)."""
+    NaN/inf, on a complex action (casting would silently drop its imaginary part) and on a masked
+    array (casting would silently use the masked entries' values)."""
+    if np.ma.isMaskedArray(action):
+        raise ValueError(f"action must be a plain array, got a masked array: {action!r}")
     arr = np.asarray(action)
     if np.iscomplexobj(arr):
         raise ValueError(f"action must be real, got complex dtype {arr.dtype}: {action!r}")

@@ -13,7 +13,6 @@ import functools
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
 from envs.core import default_float
 from envs.ring_geometry import RingTables, ring_tables
@@ -24,7 +23,8 @@ from envs.vehicle_state import VehicleParams
 DEFAULT_BANK_SIZE = 128
 
 
-@struct.dataclass
+@jax.tree_util.register_dataclass  # a pytree as flax's struct.dataclass makes one, with its own replace
+@dataclasses.dataclass(frozen=True)
 class RacingParams:
     """Everything configurable about a racing episode. Numeric leaves may be traced (vmapped sweeps).
 
@@ -42,7 +42,8 @@ class RacingParams:
     tables: RingTables | None = None
     start_s: jax.Array | None = None  # (bank,) start arc lengths
     reset_obs: dict | None = None  # (bank, ...) reset observations
-    reset_cache_for: tuple | None = struct.field(pytree_node=False, default=None)  # RacingEnv._config()
+    # RacingEnv._config() of the env the cache was built for
+    reset_cache_for: tuple | None = dataclasses.field(default=None, metadata={"static": True})
     k_forwards: float = 0.1
     k_base: float = 0.0
     k_center: float = 0.0
@@ -57,11 +58,20 @@ class RacingParams:
     cone_normaliser: float = 45.0
     # Trajectory sensor (Tracking): spacing of the lookahead points along the centre line.
     lookahead_spacing: float = 2.0
-    track_source: str = struct.field(pytree_node=False, default="bank")
+    track_source: str = dataclasses.field(default="bank", metadata={"static": True})
 
     @property
     def bank_size(self) -> int:
         return 0 if self.tracks is None else int(self.tracks.num_points.shape[0])
+
+    def replace(self, **updates) -> RacingParams:
+        """``dataclasses.replace`` that drops the reset cache when a field it depends on changes (any
+        field but the cache itself and those of ``_NOT_IN_RESET``, so a new field is covered by default).
+        Flax's ``struct.dataclass`` would install a plain ``replace`` over this one, hence the plain
+        dataclass registered as a pytree above."""
+        if set(updates) - set(RESET_CACHE_FIELDS) - set(_NOT_IN_RESET):
+            updates = {**dict.fromkeys(RESET_CACHE_FIELDS), **updates}
+        return dataclasses.replace(self, **updates)
 
 
 RESET_CACHE_FIELDS = ("start_s", "reset_obs", "reset_cache_for")
@@ -77,17 +87,6 @@ _NOT_IN_RESET = (
     "max_steps",
     "max_idle_steps",
 )
-
-
-def _replace_dropping_cache(self: RacingParams, **updates) -> RacingParams:
-    """``dataclasses.replace`` that drops the reset cache when a field it depends on changes (any field
-    but the cache itself and those of ``_NOT_IN_RESET``, so a new field is covered by default)."""
-    if set(updates) - set(RESET_CACHE_FIELDS) - set(_NOT_IN_RESET):
-        updates = {**dict.fromkeys(RESET_CACHE_FIELDS), **updates}
-    return dataclasses.replace(self, **updates)
-
-
-RacingParams.replace = _replace_dropping_cache  # flax's struct.dataclass installs a plain replace
 
 
 def stack_tracks(tracks) -> Track:

@@ -39,6 +39,7 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
+import numpy as np
 
 from envs.core import Environment, Space
 from envs.country_road import CountryRoad
@@ -161,6 +162,9 @@ def racing_params(env: RacingEnv, **overrides) -> RacingParams:
     vehicle = overrides.pop("vehicle", None) or VehicleParams()
     if not isinstance(vehicle, VehicleParams):
         raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+    max_steps = overrides.get("max_steps", 1)
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ValueError(f"max_steps (the time limit) must be a positive integer, got {max_steps!r}")
 
     params = RacingParams(vehicle=vehicle, tracks=None, **overrides)
     if user_track is not None:

@@ -29,12 +29,18 @@ from cli_args import OneLineParser, positive_int
 
 from xrl_jax.config import PRESETS
 
+# What `bench.py env` drives with one random action per env (envs.registry's single-agent names).
+RACING_SCENARIOS = ("tracking", "country_road", "tracking_discrete", "country_road_discrete")
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="bench.py", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     env_parser = sub.add_parser("env", help="environment steps per second (random actions, auto-reset)")
-    env_parser.add_argument("--scenarios", nargs="+", default=["tracking", "country_road"])
+    env_parser.add_argument(
+        "--scenarios", nargs="+", default=["tracking", "country_road"], choices=RACING_SCENARIOS,
+        help="racing scenarios (the Intersection: bench.py intersection)",
+    )  # fmt: skip
     env_parser.add_argument("--batches", nargs="+", type=positive_int, default=[1, 64, 1024, 4096, 8192])
     env_parser.add_argument("--steps", type=positive_int, default=100, help="steps per timed call")
     env_parser.add_argument("--repeats", type=positive_int, default=3)

@@ -1,7 +1,7 @@
 """Evaluate a finished run's agents again, on its training tracks or on its held-out tracks.
 
     python experiments/evaluate.py RESULTS_DIR [--tracks train|eval] [--episodes N] [--key K]
-                                   [--mode eval|deterministic|stochastic]
+                                   [--mode eval|deterministic|stochastic] [--import MODULE]
 
 Every seed's agent (every member's, in a sweep) is restored from the run's newest checkpoint and
 driven with the run's evaluation
@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, fail, positive_int
+from cli_args import IMPORT_HELP, OneLineParser, fail, import_user_modules, positive_int
 
 PROG = "evaluate.py"
 
@@ -29,6 +29,9 @@ PROG = "evaluate.py"
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("run", help="a results folder of experiments/run.py (racing scenarios)")
+    parser.add_argument(
+        "--import", dest="imports", metavar="MODULE", action="append", default=[], help=IMPORT_HELP
+    )
     parser.add_argument(
         "--tracks", choices=("train", "eval"), default="train", help="which tracks (default: train)"
     )
@@ -51,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    problem = import_user_modules(argv)  # a run on a user's env needs the module that registers it
+    if problem:
+        return fail(PROG, problem)
     args = build_parser().parse_args(argv)
     from xrl_jax.runs.folder import RunFolderError
     from xrl_jax.train import evaluate_run

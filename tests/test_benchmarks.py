@@ -31,11 +31,19 @@ def bench():
         (["intersection", "--vehicles", "9"], "--vehicles must lie in 1..8"),
         (["train", "--seeds", "3", "--devices", "2"], "every --seeds value must be a multiple"),
         (["update", "--env", "moon"], "invalid choice: 'moon'"),
+        (["env", "--scenarios", "nope"], "--scenarios: invalid choice: 'nope'"),  # was a traceback
+        (["env", "--scenarios", "intersection"], "--scenarios: invalid choice: 'intersection'"),
     ],
 )
 def test_bench_refuses_bad_input_in_one_line(bench, capsys, args, message):
     status, _, err = call(bench, capsys, *args)
     one_line_error(status, err, message)
+
+
+def test_bench_env_offers_every_single_agent_scenario(bench):
+    import envs
+
+    assert set(bench.RACING_SCENARIOS) == set(envs.ENV_NAMES) - set(envs.MULTI_AGENT_ENV_NAMES)
 
 
 def test_bench_prints_one_json_document(bench, capsys):

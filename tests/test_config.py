@@ -15,6 +15,7 @@ from xrl_jax.config import (
     TrainConfig,
     apply_overrides,
     parse_overrides,
+    parse_sweep,
     preset,
     resolve_config,
 )
@@ -276,3 +277,11 @@ def test_configs_written_before_neutral_flag_keep_their_flagged_neutral_row():
     del old["agent"]["neutral_flag"]
     assert TrainConfig.from_dict(old).agent.neutral_flag is True
     assert TrainConfig.from_dict(cfg.to_dict()).agent.neutral_flag is False  # the original's row
+
+
+@pytest.mark.parametrize("key", ["gamma", "agent.gamma"])
+def test_a_setting_both_swept_and_set_is_refused(key):
+    """The sweep's values won and config.json held the --set value beside them; now: one line."""
+    with pytest.raises(ConfigError, match=r"^gamma is both swept \(--sweep\) and set \(--set\)"):
+        sweep = parse_sweep(["gamma=0.95,0.99"])
+        resolve_config("tracking", "xsac", "smoke", overrides={key: "0.9"}, sweep=sweep)

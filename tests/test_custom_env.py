@@ -14,7 +14,7 @@ import pytest
 from train_support import call, load_script, one_line_error
 
 import xrl_jax
-from envs.core import Box, Dict, Discrete
+from envs.core import Box, Dict, Discrete, Environment
 from xrl_jax.config import ENVS, ConfigError, resolve_config
 from xrl_jax.config.scenarios import BUILT_IN, scenario
 
@@ -184,3 +184,134 @@ def test_a_registered_env_is_served_by_envs_make_and_envs_gymnax(example):
     env, params = carenv_gymnax.make("nearest_goal", flat_obs=True)
     obs, _ = env.reset(jax.random.PRNGKey(0), params)
     assert obs.shape == (2 + 8 * 3,) and params.max_steps_in_episode == 40
+
+
+class Points(Environment):
+    """A tiny set env for the registration checks: 2 present points in ``slots`` rows of 3 features,
+    the present flag in column ``flag_column`` (0 is right)."""
+
+    def __init__(self, slots: int = 4, flag_column: int = 0):
+        self.slots, self.flag_column = slots, flag_column
+
+    @property
+    def default_params(self):
+        return None
+
+    def reset_env(self, key, params):
+        flags = (jnp.arange(self.slots) < 2).astype(jnp.float32)[:, None]
+        xy = jax.random.uniform(key, (self.slots, 2), minval=-1.0, maxval=1.0) * flags
+        rows = jnp.concatenate([flags, xy] if self.flag_column == 0 else [xy, flags], axis=-1)
+        return {"state": jnp.zeros(2), "points_set": rows}, jnp.zeros(())
+
+    def step_env(self, key, state, action, params):
+        obs, _ = self.reset_env(key, params)
+        return obs, state, jnp.zeros(()), jnp.zeros((), bool), jnp.zeros((), bool), {}
+
+    def observation_space(self, params=None):
+        return Dict({"state": Box(-1, 1, (2,)), "points_set": Box(-1, 1, (self.slots, 3))})
+
+    def action_space(self, params=None):
+        return Discrete(3)
+
+
+@pytest.fixture
+def points():
+    yield "points"
+    xrl_jax.unregister_env("points")
+
+
+def test_register_env_checks_the_present_flag_on_real_resets(points):
+    """Rows ``[x, y, present]``: column 0 holds coordinates, which the agents would read as flags."""
+    with pytest.raises(ConfigError, match=r"column 0 of 'points_set' must be the present flag") as error:
+        xrl_jax.register_env(points, lambda: (Points(flag_column=2), None), 20)
+    assert "\n" not in str(error.value)
+    assert xrl_jax.register_env(points, lambda: (Points(), None), 20).num_objects == 4
+
+
+def test_a_factory_that_returns_the_env_alone_is_told_to_return_a_pair(points):
+    with pytest.raises(ConfigError, match=r"must return a pair \(env, params\), got Points \(the env alone"):
+        xrl_jax.register_env(points, lambda: Points(), 20)
+
+
+def test_the_time_limit_defaults_to_the_env_s_own(example):
+    """One name for an env's time limit: register_env asks the env when not told."""
+    env, params = example.make_nearest_goal()
+    assert env.max_episode_steps(params) == 40
+    facts = xrl_jax.register_env("goal_default_limit", example.make_nearest_goal)
+    try:
+        assert facts.max_episode_steps == 40
+    finally:
+        xrl_jax.unregister_env("goal_default_limit")
+
+
+def register_points_from(module: str, slots: int = 4, steps: int = 20) -> None:
+    """``register_env`` called from a module named ``module`` (what a run records as the registrar)."""
+    namespace = {"__name__": module, "register_env": xrl_jax.register_env, "Points": Points}
+    exec(f"register_env('points', lambda: (Points({slots}), None), {steps})", namespace)
+
+
+@pytest.mark.parametrize(
+    "change, fragment",
+    [
+        (dict(slots=6), "observation layout points_set (4, 3), state (2,) in the run, points_set (6, 3)"),
+        (dict(steps=30), "max_episode_steps 20 in the run, 30 registered now"),
+        (dict(module="another_module"), "registering module 'points_module' in the run, 'another_module'"),
+    ],
+)
+def test_a_resume_with_another_env_than_the_run_s_is_refused_and_moves_nothing(
+    points, capsys, tmp_path, change, fragment
+):
+    """A changed observation layout made the checkpoints unreadable: both were reported damaged and set
+    aside. A changed time limit or module mixed two evaluation protocols in one run. Now the run's
+    record of its env is compared first: one line, exit 2, nothing moved."""
+    from xrl_jax.runs.folder import RunFolderError, read_run_config
+    from xrl_jax.runs.provenance import config_document
+    from xrl_jax.train.restore import config_fingerprint
+
+    register_points_from("points_module")
+    cfg = resolve_config(points, "xdsac", "smoke")
+    fingerprint = config_fingerprint(cfg)
+    out = tmp_path / "run"
+    checkpoint = out / "checkpoints" / "group_0" / "64"
+    checkpoint.mkdir(parents=True)
+    (checkpoint / "state").write_text("the run's state")
+    document = config_document(cfg, ["run.py"])
+    (out / "config.json").write_text(json.dumps(document, indent=2, sort_keys=True))
+    assert read_run_config(out).env == points  # the same env: the run reads
+
+    register_points_from(change.pop("module", "points_module"), **change)
+    assert config_fingerprint(cfg) != fingerprint  # nor would the checkpoints' fingerprint match
+    run = load_script("run", "run_changed_custom_env")
+    status, _, err = call(run, capsys, "--resume", str(out), "--quiet")
+    one_line_error(status, err, fragment, "--import the module the run was trained with")
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["group_0"]
+    assert (checkpoint / "state").read_text() == "the run's state"
+    with pytest.raises(RunFolderError, match="registered now"):  # the folder's readers: explain, evaluate
+        read_run_config(out)
+
+
+def test_evaluate_py_imports_the_module_it_tells_the_user_to_import(example, capsys, tmp_path):
+    """evaluate.py said "--import the module that registers it" and had no --import; now it has one,
+    and a user's env run gets evaluate.py's own answer (its episodes are in eval/)."""
+    from xrl_jax.runs.provenance import config_document
+
+    out = tmp_path / "run"
+    out.mkdir()
+    document = config_document(resolve_config("nearest_goal", "xdsac", "smoke"), ["run.py"])
+    (out / "config.json").write_text(json.dumps(document, sort_keys=True))
+    evaluate = load_script("evaluate", "evaluate_custom_env")
+    status, _, err = call(evaluate, capsys, "--import", str(EXAMPLE), str(out))
+    one_line_error(status, err, "nearest_goal runs have no tracks")
+
+
+def test_a_script_run_as_main_records_the_name_its_import_gives_it(points):
+    """``python docs/examples/nearest_goal.py`` registers from ``__main__``; resuming or explaining the
+    run with ``--import docs/examples/nearest_goal.py`` registers from ``nearest_goal``: one module."""
+    from xrl_jax.config.user_envs import user_env_record
+
+    namespace = {"__name__": "__main__", "__file__": "/somewhere/points_module.py", "__spec__": None,
+                 "register_env": xrl_jax.register_env, "Points": Points}  # fmt: skip
+    exec("register_env('points', lambda: (Points(), None), 20)", namespace)
+    as_script = user_env_record(points)
+    register_points_from("points_module")
+    assert as_script == user_env_record(points) and as_script["module"] == "points_module"

@@ -50,6 +50,27 @@ def test_single_env_rejects_bad_actions(track):
         GymEnv(envs.CountryRoad())
 
 
+def test_masked_actions_are_rejected(track):
+    """np.asarray of a masked array keeps the masked entries' values: the env would act on them."""
+    env = GymEnv("country_road", track=track)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="masked array"):
+        env.step(np.ma.masked_array([0.0, 0.9, 0.0], mask=[False, True, False]))
+    vec = GymVectorEnv("country_road", num_envs=2, track=track)
+    vec.reset(seed=0)
+    with pytest.raises(ValueError, match="masked array"):
+        vec.step(np.ma.masked_array(np.zeros((2, 3)), mask=np.eye(2, 3, dtype=bool)))
+
+
+def test_a_multi_agent_env_is_refused_in_one_line():
+    """The Intersection's observations carry 8 agent slots that the per-agent Gymnasium spaces lack:
+    the adaptor took it and failed at the first step, or returned observations outside its space."""
+    for adaptor in (GymEnv, GymVectorEnv):
+        with pytest.raises(ValueError, match="single-agent envs; Intersection is multi-agent") as error:
+            adaptor("intersection")
+        assert "\n" not in str(error.value)
+
+
 def test_complex_actions_are_rejected(track):
     # The cast to float32 would drop the imaginary part with only a ComplexWarning.
     env = GymEnv("country_road", track=track)

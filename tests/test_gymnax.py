@@ -102,6 +102,60 @@ def test_intersection_episode_ends_at_its_time_limit_with_per_vehicle_flags():
     assert int(state.time) == 0 and int(state.inner.step) == 0
 
 
+def test_the_adaptors_ask_the_env_how_many_agents_act_and_its_time_limit():
+    """One way to know "multi-agent" and one name for the time limit: the env answers both."""
+    cases = (("tracking", dict(max_steps=7, **SMALL_BANK)), ("intersection", dict(episode_steps=9)))
+    for name, overrides in cases:
+        env, params = carenv_gymnax.make(name, **overrides)
+        assert env.multi_agent == env.scenario.multi_agent == (env.scenario.num_agents > 1)
+        assert params.max_steps_in_episode == env.scenario.max_episode_steps(params.inner)
+    assert carenv_gymnax.make("intersection")[0].multi_agent and env.scenario.num_agents == MAX_AGENTS
+
+
+def bad_input_cases():
+    """(what is wrong, a call that must fail in one line, the line's type and fragment)."""
+    from gymnax.environments.environment import EnvParams
+
+    env, params = carenv_gymnax.make("tracking", **SMALL_BANK)
+    discrete, discrete_params = carenv_gymnax.make("tracking_discrete", **SMALL_BANK)
+    multi, multi_params = carenv_gymnax.make("intersection")
+    road_params = carenv_gymnax.make("country_road", **SMALL_BANK)[1]
+    _, state = env.reset(jax.random.PRNGKey(0), params)
+    _, discrete_state = discrete.reset(jax.random.PRNGKey(0), discrete_params)
+    _, multi_state = multi.reset(jax.random.PRNGKey(0), multi_params)
+    key = jax.random.PRNGKey(1)
+    return [
+        ("a batch of one action", lambda: env.step(key, state, jnp.zeros((1, 3)), params), ValueError,
+         "an action has shape (3,), got (1, 3)"),
+        ("two discrete actions", lambda: discrete.step(key, discrete_state, jnp.zeros(2, jnp.int32),
+         discrete_params), ValueError, "an action has shape (), got (2,)"),
+        ("one vehicle's action", lambda: multi.step(key, multi_state, jnp.zeros(3), multi_params), ValueError,
+         "an action has shape (8, 3) (8 agent slots), got (3,)"),
+        ("gymnax's own EnvParams", lambda: env.reset(key, EnvParams()), TypeError, "got EnvParams"),
+        ("the Intersection's params", lambda: env.reset(key, multi_params), ValueError,
+         "made for 'Intersection'"),
+        ("Country Road's params", lambda: env.step(key, state, jnp.zeros(3), road_params), ValueError,
+         "made for 'CountryRoad'"),
+        ("the scenario's own params", lambda: env.reset(key, params.inner), TypeError, "got RacingParams"),
+        ("a time limit of 0", lambda: carenv_gymnax.make("tracking", max_steps=0, **SMALL_BANK), ValueError,
+         "max_steps (the time limit) must be a positive integer, got 0"),
+        ("a negative time limit", lambda: carenv_gymnax.make("intersection", episode_steps=-1), ValueError,
+         "episode_steps must be a positive int"),
+        ("flat_obs as a word", lambda: carenv_gymnax.make("tracking", flat_obs="no"), ValueError,
+         "flat_obs must be True or False, got 'no'"),
+        ("not an envs Environment", lambda: carenv_gymnax.GymnaxEnv(object(), None), TypeError,
+         "adapts an envs.core.Environment, got object"),
+    ]  # fmt: skip
+
+
+def test_bad_input_fails_in_one_line_saying_what_is_wrong():
+    for what, call, error, fragment in bad_input_cases():
+        with pytest.raises(error) as raised:
+            call()
+        message = str(raised.value)
+        assert fragment in message and "\n" not in message, (what, message)
+
+
 def test_a_third_party_trainer_learns_on_tracking():
     """rejax's PPO (written for gymnax's five-value step, hence legacy_step_api) trains on Tracking
     through envs.gymnax. rejax evaluates 128 episodes before training and at every eval_freq; the

@@ -78,3 +78,17 @@ def test_the_config_and_the_cli_help_need_no_jax():
     code = "import sys; import xrl_jax.config; assert 'jax' not in sys.modules, 'jax imported'"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
+
+
+def test_envs_gymnax_without_the_extra_says_how_to_install_it(monkeypatch):
+    """Without gymnax, ``import envs.gymnax`` names the extra to install (simulated: gymnax hidden)."""
+    import importlib
+
+    import pytest
+
+    for name in [m for m in sys.modules if m == "gymnax" or m.startswith("gymnax.") or m == "envs.gymnax"]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "gymnax", None)  # import gymnax now fails as if not installed
+    with pytest.raises(ModuleNotFoundError, match=r"pip install 'xrl-jax\[gymnax\]'") as error:
+        importlib.import_module("envs.gymnax")
+    assert "\n" not in str(error.value)

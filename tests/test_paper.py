@@ -133,3 +133,22 @@ def test_the_whole_campaign_at_the_smoke_preset(paper, capsys, tmp_path):
     assert (out / "report" / "sweep_country_road-xdsac-kappa.png").is_file()
     assert report.count("| hand controller (8 m/s) |") == 2  # the two racing envs
     assert report.count("| scripted driver (10 m/s) |") == 1
+
+
+def test_the_cpu_rate_of_the_estimate_is_a_measured_table_shipped_with_the_package():
+    """The campaign's CPU FLOP/s is a measurement: it lives in a data file beside the benchmarks that
+    measure it (not a constant in code), which the package installs (pyproject's package data)."""
+    import fnmatch
+    from pathlib import Path
+
+    tomllib = pytest.importorskip("tomllib")
+    from xrl_jax import campaign
+
+    root = Path(campaign.__file__).resolve().parent
+    assert campaign.MEASURED_RATES.parent == root / "benchmarks" and campaign.MEASURED_RATES.is_file()
+    setuptools = tomllib.loads((root.parent / "pyproject.toml").read_text())["tool"]["setuptools"]
+    declared = setuptools["package-data"]
+    assert any(fnmatch.fnmatch(campaign.MEASURED_RATES.name, p) for p in declared["xrl_jax.benchmarks"])
+    rate = json.loads(campaign.MEASURED_RATES.read_text())["cpu_update_flop_per_s"]
+    assert campaign.cpu_flops() == rate["value"] > 0 and "bench.py update" in rate["measured"]
+    assert not hasattr(campaign, "CPU_FLOPS")

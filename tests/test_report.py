@@ -357,3 +357,21 @@ def test_runs_of_one_protocol_from_different_base_seeds_are_pooled_into_one_row(
     runs = read_runs([pool[0], twin, longer], note=notes.append)
     assert sorted(r.name for r in runs) == ["first", "longer", "twin"]
     assert notes == ["first, twin ran one protocol from one base seed (the same seeds); reported separately"]
+
+
+def test_a_run_that_diverged_is_reported_as_diverged_naming_seed_and_step(tmp_path):
+    """The trainer stops a diverged run after writing the chunk's metrics (non-finite values as "nan");
+    the report said only "incomplete" of it."""
+    folder = fake_run(tmp_path / "nan", "tracking", "sac", "quick", [10.0, 12.0], missing=(1,))
+    (folder / "metrics").mkdir()
+    healthy = {"train/loss_critic": 0.5, "train/loss_actor": -1.0}
+    for stem, broken_at in (("seed_0", None), ("seed_1", 4096)):
+        rows = [{"step": step, "seed": int(stem[-1]), **healthy} for step in (2048, 4096)]
+        rows = [r | ({"train/loss_actor": "nan"} if r["step"] == broken_at else {}) for r in rows]
+        (folder / "metrics" / f"{stem}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    (row,) = results_rows(read_runs([folder]), "tracking")
+    assert row["status"] == (
+        "diverged: seed 1 by step 4,096 (train/loss_actor not finite); "
+        "1 of 2 seeds have their final evaluation"
+    )
+    assert read_run(folder).status() == row["status"]

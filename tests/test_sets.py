@@ -311,6 +311,33 @@ def test_capacity_rule_and_bad_settings():
     for bad in (0.0, -1.0, float("nan"), "8"):
         with pytest.raises(ValueError, match="rows_per_set"):
             sets.Packing(bad)
+    for bad in (None, ""):  # no axis would leave the members' shared decision unnamed
+        with pytest.raises(ValueError, match="members_axis must name a vmap axis"):
+            sets.Packing(8.0, members_axis=bad)
+
+
+def test_the_packed_only_networks_are_built_in_one_place_and_only_lose_the_fallback():
+    """Packing without its fallback (a FLOPs-only switch: a call that overflows drops objects) ran
+    through make_agent, make_networks, set_packing and country_road_networks; now only
+    networks.packed_only builds it, and its lowered update has no conditional where the agent's has."""
+    import inspect
+
+    from xrl_jax import networks
+    from xrl_jax.benchmarks.table_one import country_road_networks
+
+    for api in (make_agent, networks.make_networks, networks.set_packing, country_road_networks):
+        assert not any("fallback" in name for name in inspect.signature(api).parameters), api
+    config = preset("smoke", "country_road", "xdsac").replace(packed_rows=4.0)
+    agent = make_agent(config, networks.dummy_observation(ENV_OBSERVATIONS["country_road"]), 12)
+    packed = networks.packed_only(agent.networks)
+    assert packed.config == agent.networks.config and packed is not agent.networks
+    obs = networks.dummy_observation(ENV_OBSERVATIONS["country_road"], (16,))
+    params = jax.eval_shape(agent.networks.init_actor, jax.random.PRNGKey(0))
+
+    def lowered(nets):
+        return jax.jit(nets.actor.apply).lower(params, obs).as_text()
+
+    assert "case" in lowered(agent.networks) and "case" not in lowered(packed)
 
 
 def test_first_present_compacts_each_set_in_slot_order():

@@ -394,21 +394,22 @@ class Agent:
                     )
 
 
-def make_agent(
-    config: AgentConfig, obs_example: Mapping[str, Any], action_size: int, packing_fallback: bool = True
-) -> Agent:
+def make_agent(config: AgentConfig, obs_example: Mapping[str, Any], action_size: int) -> Agent:
     """Build an agent for observations shaped like `obs_example` (one unbatched observation) and
     `action_size` = A (continuous: SAC, XSAC) or N (discrete: DSAC, XDSAC).
 
     With ``config.packed_rows`` its per-object layers compute on the present objects only
-    (:mod:`xrl_jax.sets`); to keep that a real branch under your own ``jax.vmap`` over agent states,
-    name the axis ``xrl_jax.sets.MEMBERS_AXIS``. ``packing_fallback=False`` only for counting FLOPs."""
+    (:mod:`xrl_jax.sets`), and on every slot in a call that overflows; that fallback stays a branch
+    that runs only when needed if your own ``jax.vmap`` over agent states names its axis
+    ``xrl_jax.sets.MEMBERS_AXIS`` (``jax.vmap(agent.update, axis_name=MEMBERS_AXIS)``, as the
+    trainer does). Under an unnamed ``vmap`` both sides run on every call: the same results, the
+    dense cost."""
     if not isinstance(config, AgentConfig):
         raise TypeError(f"config must be an AgentConfig, got {type(config).__name__}")
     if not isinstance(action_size, int) or action_size < 1:
         raise ValueError(f"action_size must be a positive integer, got {action_size!r}")
     obs_shape = observation_shape(obs_example)
-    networks = make_networks(config, obs_shape, action_size, packing_fallback)
+    networks = make_networks(config, obs_shape, action_size)
     return Agent(config=config, networks=networks, obs_shape=obs_shape, action_size=action_size)
 
 

@@ -11,6 +11,7 @@ report.
 from __future__ import annotations
 
 import fnmatch
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,13 +19,19 @@ from pathlib import Path
 from xrl_jax.config import ALGOS, ENVS, ConfigError, parse_overrides, parse_sweep, resolve_config
 
 KAPPAS = "-0.01,-0.001,0,0.001,0.01,0.1"
-# Device throughput for the estimate, in FLOP/s the update achieves. This CPU: bench.py update measured
-# 96-103 GFLOP/s for the width-256 X agents on 2 cores (README, Benchmarks). An H100 SXM: 67 TFLOP/s
-# float32 on its datasheet, of which these small networks reach a fraction: --utilisation.
-CPU_FLOPS = 100e9
+# Device throughput for the estimate, in FLOP/s the update achieves. The CPU's is measured, so it lives
+# with its measurement in a data file (cpu_flops). An H100 SXM: 67 TFLOP/s float32 on its datasheet, of
+# which these small networks reach a fraction: --utilisation.
+MEASURED_RATES = Path(__file__).resolve().parent / "benchmarks" / "measured_rates.json"  # package data
 H100_FLOPS = 67e12
 STOPPED_BY_SIGNAL = (130, 143)  # run.py's statuses after SIGINT / SIGTERM
 BAD_INPUT = 2  # run.py's status for a request it refuses: the campaign's others would be refused too
+
+
+def cpu_flops() -> float:
+    """The update FLOP/s of the CPU that the plan's CPU hours assume (``measured_rates.json``, which
+    says how it was measured: docs/benchmarks.md)."""
+    return float(json.loads(MEASURED_RATES.read_text())["cpu_update_flop_per_s"]["value"])
 
 
 @dataclass(frozen=True)
@@ -154,7 +161,7 @@ def plan(
     from xrl_jax.runs.folder import read_run_config
     from xrl_jax.train import get_trainer, plan_memory, scenario_kind
 
-    occupancy = load_occupancy()
+    occupancy, cpu = load_occupancy(), cpu_flops()
     rows = []
     for run in runs:
         status = run_status(out / run.name)
@@ -192,9 +199,9 @@ def plan(
                 "fallback_probability": cost["fallback_probability"],
                 "progress": sum(done) / (cfg.total_steps * cfg.num_members),
                 "pflop_total": total / 1e15,
-                "cpu_hours": total / CPU_FLOPS / 3600,
+                "cpu_hours": total / cpu / 3600,
                 "h100_hours": total / (H100_FLOPS * utilisation) / 3600,
-                "cpu_hours_left": left / CPU_FLOPS / 3600,
+                "cpu_hours_left": left / cpu / 3600,
                 "h100_hours_left": left / (H100_FLOPS * utilisation) / 3600,
             }
         )
@@ -216,7 +223,7 @@ def format_plan(rows: list[dict], utilisation: float) -> list[str]:
         )
     cpu, h100 = sum(r["cpu_hours_left"] for r in rows), sum(r["h100_hours_left"] for r in rows)
     lines.append(
-        f"total still to run: {cpu:,.0f} CPU hours at {CPU_FLOPS / 1e9:.0f} GFLOP/s (this 2-core CPU), "
+        f"total still to run: {cpu:,.0f} CPU hours at {cpu_flops() / 1e9:.0f} GFLOP/s (measured_rates.json), "
         f"{h100:,.1f} H100 hours at {utilisation:.0%} of {H100_FLOPS / 1e12:.0f} TFLOP/s; updates only "
         "(an env step costs a small fraction of an update: docs/benchmarks.md)"
     )

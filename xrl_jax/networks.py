@@ -93,12 +93,12 @@ def dummy_observation(shape: ObservationShape, batch_shape: tuple[int, ...] = ()
     }
 
 
-def set_packing(config: AgentConfig, fallback: bool = True) -> Packing | None:
+def set_packing(config: AgentConfig) -> Packing | None:
     """How the per-object layers pack the present objects (``packed_rows`` per set), or ``None``:
-    every slot (no ``packed_rows``, or ``dense_sets``). ``fallback`` as in :class:`~xrl_jax.sets.Packing`."""
+    every slot (no ``packed_rows``, or ``dense_sets``)."""
     if config.packed_rows is None or config.dense_sets:
         return None
-    return Packing(float(config.packed_rows), fallback=fallback)
+    return Packing(float(config.packed_rows))
 
 
 def make_extractor(config: AgentConfig, packing: Packing | None = None) -> nn.Module:
@@ -155,17 +155,35 @@ class Networks:
         return self.critic.init(key, self.dummy_observation(), self.dummy_action())
 
 
-def make_networks(
-    config: AgentConfig, obs_shape: ObservationShape, action_size: int, packing_fallback: bool = True
-) -> Networks:
+def make_networks(config: AgentConfig, obs_shape: ObservationShape, action_size: int) -> Networks:
     """Build the actor of §4.6 with its policy, and the critic (each with its own extractor where it
     has one).
 
     ``action_size`` is A (SAC, XSAC) or N (DSAC, XDSAC); the config is validated on construction.
-    ``packing_fallback=False`` only for counting FLOPs (:class:`~xrl_jax.sets.Packing`).
+    With ``config.packed_rows`` the per-object layers compute on the present objects only
+    (:mod:`xrl_jax.sets`), falling back to every slot in a call that overflows. That fallback is a
+    branch that runs only when needed, as long as a ``jax.vmap`` over several agents' states (members)
+    names its axis :data:`xrl_jax.sets.MEMBERS_AXIS`; under any other ``vmap`` both sides run every call
+    (the same result, at the dense cost).
     """
-    c = config
-    packing = set_packing(c, packing_fallback)
+    return _networks(config, obs_shape, action_size, set_packing(config))
+
+
+def packed_only(networks: Networks) -> Networks:
+    """``networks`` with their packed computation compiled alone, without the fallback to every slot,
+    for counting the FLOPs a packed call runs (XLA's cost analysis counts a conditional as its larger
+    branch). Lower and count them, never run them: a call that overflows drops objects. The one way to
+    build such networks (:class:`~xrl_jax.sets.Packing`'s ``fallback``)."""
+    packing = set_packing(networks.config)
+    if packing is None:
+        return networks
+    packing = dataclasses.replace(packing, fallback=False)
+    return _networks(networks.config, networks.obs_shape, networks.action_size, packing)
+
+
+def _networks(
+    c: AgentConfig, obs_shape: ObservationShape, action_size: int, packing: Packing | None
+) -> Networks:
     if c.is_mixture:
         actor, policy = _mixture_actor(c, obs_shape, action_size, packing)
     else:
@@ -251,6 +269,7 @@ __all__ = [
     "make_extractor",
     "make_networks",
     "object_inputs",
+    "packed_only",
     "positional_encoding",
     "present_mask",
     "set_packing",

@@ -22,7 +22,7 @@ import numpy as np
 from xrl_jax import stats
 from xrl_jax.config import scenario
 from xrl_jax.evaluation import evaluate_yardstick, has_yardstick
-from xrl_jax.runs.folder import RunFolderError, read_run_config
+from xrl_jax.runs.folder import RunFolderError, first_nonfinite_metric, read_run_config
 from xrl_jax.runs.kept import distinct_runs, keep_records, protocol_groups
 from xrl_jax.runs.plots import format_step_axis, plot_sweep
 from xrl_jax.runs.summary import summarize_pooled, summarize_run, summary_metrics
@@ -64,11 +64,13 @@ class Run:
         return np.array([row[metric] for row in rows if metric in row], np.float64)
 
     def status(self) -> str:
-        """'complete', or what is missing (a run still going, a lost seed)."""
+        """'complete', or what is missing (a run still going, a lost seed), and where it diverged."""
         cfg, done = self.cfg, len(self.summary["seeds"])
         if self.summary["complete"]:
             return "complete"
-        return f"incomplete: {done} of {cfg.num_members} seeds have their final evaluation"
+        missing = f"{done} of {cfg.num_members} seeds have their final evaluation"
+        diverged = min(filter(None, map(first_nonfinite_metric, self.folders)), default=None)
+        return f"diverged: {diverged}; {missing}" if diverged else f"incomplete: {missing}"
 
 
 def read_run(folder: str | Path) -> Run:

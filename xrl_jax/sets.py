@@ -46,10 +46,15 @@ class Packing:
 
     ``rows_per_set``: rows reserved per set, on average over the sets of one call; a call of S sets
     with O slots each packs into ``min(S·O, ceil8(S · rows_per_set))`` rows.
-    ``members_axis``: the vmap axis name whose members share the decision (see the module doc).
+    ``members_axis``: the vmap axis name whose members share the decision between packed and dense.
+    **Name your vmap so**: a ``jax.vmap`` over several members' calls (agent states, seeds) must pass
+    ``axis_name=members_axis`` (:data:`MEMBERS_AXIS` by default; the trainer and the evaluation do),
+    or the dense branch runs on every call as a select (the same results, the dense cost). JAX gives
+    no public way to tell that a call runs under an unnamed vmap, so this cannot be checked here.
     ``fallback=False`` compiles the packed computation alone, without the dense branch: only for
     counting its FLOPs (XLA's cost analysis counts the larger branch of a conditional); a call that
-    overflows then drops objects.
+    overflows then drops objects. Leave it alone: :func:`xrl_jax.networks.packed_only` is the one
+    place that sets it, for the FLOP counts of ``costs.py`` and ``paper.py --dry-run``.
     """
 
     rows_per_set: float
@@ -61,6 +66,10 @@ class Packing:
             raise ValueError(f"rows_per_set must be a finite number, got {self.rows_per_set!r}")
         if self.rows_per_set <= 0:
             raise ValueError(f"rows_per_set must be positive, got {self.rows_per_set}")
+        if not (isinstance(self.members_axis, str) and self.members_axis):
+            raise ValueError(
+                f"members_axis must name a vmap axis (a non-empty str), got {self.members_axis!r}"
+            )
 
     def capacity(self, num_sets: int, slots: int) -> int:
         """Packed rows for ``num_sets`` sets of ``slots`` slots (never more than all slots)."""
@@ -263,9 +272,10 @@ def packed_or_dense(
 
     Both must return the same result up to float rounding; ``dense`` alone runs without a plan, and
     at initialisation, so that parameters start from the same draws with packing or without. The
-    packed computation always runs; the dense one only when some member's call overflows (a real
-    branch when the members' axis is named), and each member keeps its own choice, so that what a
-    member computes never depends on which members share its device.
+    packed computation always runs; the dense one only when some member's call overflows, and each
+    member keeps its own choice, so that what a member computes never depends on which members share
+    its device. That is a real branch only when a ``jax.vmap`` over members names its axis
+    ``packing.members_axis`` (:data:`MEMBERS_AXIS`); under an unnamed one both sides always run.
     """
     if plan is None or module.is_initializing():
         return dense(module, *operands)

@@ -21,6 +21,7 @@ that the cost estimates read (:func:`load_occupancy`, :func:`overflow_probabilit
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -36,6 +37,7 @@ from envs import hand_controller
 from xrl_jax import config
 from xrl_jax.agents import make_agent
 from xrl_jax.benchmarks.timing import update_flops
+from xrl_jax.networks import packed_only as networks_packed_only
 from xrl_jax.sets import Packing
 from xrl_jax.tracks import cached_track_bank, racing_env
 
@@ -248,8 +250,9 @@ def fallback_probability(agent, batch_size: int, members: int = 1, table: dict |
 
 def packed_only(agent):
     """``agent`` with its packed computation compiled alone (no dense fallback), to count the FLOPs
-    that run: XLA's cost analysis counts a conditional as its larger branch."""
-    return make_agent(agent.config, agent.dummy_observation(), agent.action_size, packing_fallback=False)
+    that run: XLA's cost analysis counts a conditional as its larger branch. Lower it, never run it
+    (:func:`xrl_jax.networks.packed_only`)."""
+    return dataclasses.replace(agent, networks=networks_packed_only(agent.networks))
 
 
 def update_cost(agent, batch_size: int, members: int = 1, table: dict | None = None) -> dict[str, float]:

@@ -58,14 +58,11 @@ def mixture_actor_sample_flops(
     return num_objects * shared + (1 if fast else num_objects) * rest
 
 
-def country_road_networks(algo: str, packing_fallback: bool = True, **overrides: Any) -> networks.Networks:
-    """The paper's Country Road networks of ``algo`` (its continuous actions), with config overrides
-    (``packing_fallback=False``: the packed computation alone, for counting its FLOPs)."""
+def country_road_networks(algo: str, **overrides: Any) -> networks.Networks:
+    """The paper's Country Road networks of ``algo`` (its continuous actions), with config overrides."""
     config = preset("paper", "country_road", algo).replace(**overrides)
     actions = envs.action_size(envs.action_space("country_road"))
-    return networks.make_networks(
-        config, networks.ENV_OBSERVATIONS["country_road"], actions, packing_fallback
-    )
+    return networks.make_networks(config, networks.ENV_OBSERVATIONS["country_road"], actions)
 
 
 def sac_actor_outputs(actor, params, obs) -> tuple:
@@ -97,7 +94,7 @@ def measure_table_one() -> list[dict]:
         overrides = {} if depth is None else {"weight_depth": depth}
         nets = country_road_networks(algo, dense_sets=True, **overrides)
         params = jax.jit(nets.init_actor)(key)
-        packed_only = country_road_networks(algo, packing_fallback=False, **overrides)
+        packed_only = networks.packed_only(country_road_networks(algo, **overrides))
         dense, packed = (acting_flops(n, params, obs, key) for n in (nets, packed_only))
         capacity = Packing(nets.config.packed_rows).capacity(1, shape.num_objects)
         fallback = overflow_probability(histogram, 1, capacity)

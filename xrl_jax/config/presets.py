@@ -14,38 +14,38 @@ from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, DISCRETE_ALGOS, MIXTUR
 from xrl_jax.config.scenarios import scenario
 
 INTERSECTION_ALPHA = 0.015  # fixed entropy coefficient of all four intersection agents (§8.7 there)
-# Rows reserved per set for the present objects (xrl_jax.sets). Country Road's sets hold 28.9 cones on
-# average (p99 47 of 100 slots, xrl_jax/benchmarks/set_occupancy.json); the Intersection's training
-# buffer held 1.48 other vehicles per observation (sd 0.87) after 3,000 quick-preset steps, three times
-# the random-driver rollouts of set_occupancy.json. A batch of 128 sets then leaves over 6 standard
-# deviations of its total spare; docs/performance.md shows the choice.
+# Rows reserved per set for the present objects (xrl_jax.sets): a little over the measured mean number
+# of present objects per set (for the Intersection, as the trainer's own buffer holds them), so that a
+# whole batch's objects fit with many standard deviations to spare and a batch seldom falls back to
+# every slot. The measurements and the margin: docs/performance.md, "How full the sets are" and
+# "Choosing packed_rows".
 COUNTRY_ROAD_PACKED_ROWS = 32.0
 INTERSECTION_PACKED_ROWS = 2.0
 
 # The quick preset's optimisation constants on the racing scenarios, chosen for a budget of tens of
-# thousands of steps: the paper starts at α = 0.1 and moves log α slowly, so over a short run the
-# entropy bonus (0.1·ln 12 per step) outweighs the reward (≤ ~0.1 per step) and the policy stays
-# nearly uniform. Actor and critic rates decay to zero over the run (resolve_config); the README's
-# Results section holds what these choices gave.
+# thousands of steps: the paper's α starts high and moves slowly, so over a short run the entropy bonus
+# outweighs the reward and the policy stays nearly uniform. Actor and critic rates decay to zero over
+# the run (resolve_config). The probes that chose them: docs/quick_preset_tuning.md, "XDSAC: the
+# measurements that chose the preset"; the README's Results section holds what these choices gave.
 QUICK_RACING_OPTIMISATION = {
     "init_alpha": 0.005,
     "alpha_lr": 1e-3,
     "actor_lr": 6e-4,
     "critic_lr": 6e-4,
-    "gamma": 0.98,  # 0.95 learns to drive fast but crashes; 0.99 learns to stand still
+    "gamma": 0.98,  # a shorter horizon learned to drive fast and crash, a longer one to stand still
 }
-# The quick preset's constants on the Intersection (every agent), chosen on XDSAC over 20k steps, 4
-# seeds: with the paper's fixed α = 0.015 the entropy bonus (0.015 · ln 12 ≈ 0.037 per step) matches the
-# progress reward of a car at 8 m/s (0.04), and the policy stayed near uniform (entropy 2.0 of 2.48 at
-# 18k steps; cars at 1-2 m/s in the evaluation); α = 0.005 with learning rates 6e-4 had it drive (5-7 m/s,
-# entropy 0.9) by 15k steps. docs/quick_preset_tuning.md keeps the measurements.
+# The quick preset's constants on the Intersection (every agent), chosen on XDSAC: with the paper's fixed
+# α the entropy bonus is as large as the progress reward of a car at cruising speed, and over a short
+# run the policy stayed near uniform with the cars creeping; a smaller α with the racing quick preset's
+# learning rates had them drive. docs/quick_preset_tuning.md, "Intersection: the quick protocol", keeps
+# the measurements.
 QUICK_INTERSECTION_OPTIMISATION = {"init_alpha": 0.005, "actor_lr": 6e-4, "critic_lr": 6e-4}
 QUICK_SIZES = {"actor_width": 64, "critic_width": 64, "fe_width": 32, "actor_depth": 2, "critic_depth": 2}
 # Tracking at width 64 starved the agents whose one network reads all 25 centre-line points (SAC
-# levelled off at ~11 over 80k steps; at width 128 it reached 49.2 after 240k) and left two of XSAC's
-# four seeds stuck driving fast and crashing (28.9 after 240k; at width 128 both left that mode and XSAC
-# reached 72.2). XDSAC passes at width 64 (63.5) and stays there. docs/quick_preset_tuning.md has the
-# runs. fe_width, which only a Deep Set uses, doubles along.
+# levelled off far below the hand controller; at width 128 it passed it) and left two of XSAC's four
+# seeds stuck driving fast and crashing (at width 128 both left that mode). XDSAC passes at width 64 and
+# stays there. docs/quick_preset_tuning.md, "The other agents within the quick budget", has the runs.
+# fe_width, which only a Deep Set uses, doubles along.
 QUICK_TRACKING_WIDE_SIZES = {"actor_width": 128, "critic_width": 128, "fe_width": 128}
 QUICK_TRACKING_WIDE_ALGOS = ("sac", "dsac", "xsac")
 QUICK_WIDE = {("tracking", algo): QUICK_TRACKING_WIDE_SIZES for algo in QUICK_TRACKING_WIDE_ALGOS}
@@ -70,10 +70,11 @@ TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
         total_steps=5_000_000, num_envs=2, warmup_steps=2_000, batch_size=512, buffer_size=15_000_000,
         log_interval=2_000, eval_interval=100_000, eval_episodes=20, checkpoint_interval=100_000,
         reinit_steps=500_001),
-    # The buffer keeps every agent transition (2.05 per env step in the quick runs' buffers). One seed at
-    # a time: members in one program update in lockstep, each step as often as the member with the most
-    # vehicles needs, and on a 2-core CPU that made 4 seeds together 1.6x slower than one after another
-    # (docs/performance.md).
+    # The buffer keeps every agent transition (about two per env step: docs/quick_preset_tuning.md,
+    # "Intersection: the quick protocol"). One seed at a time: members in one program update in
+    # lockstep, each step as often as the member with the most vehicles needs, and on a 2-core CPU that
+    # made seeds together slower than one after another (docs/performance.md, "Intersection: one seed
+    # at a time at the quick preset").
     ("quick", "multi_agent"): dict(
         total_steps=200_000, num_envs=2, warmup_steps=2_000, batch_size=128, buffer_size=600_000,
         log_interval=1_000, eval_interval=10_000, eval_episodes=10, checkpoint_interval=10_000,
@@ -88,12 +89,13 @@ TRAIN_PRESETS.update({
     for name in PRESETS
 })
 ENV_TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
-    # Tracking over the racing row: 80k steps left all but XDSAC below the hand controller; SAC passed
-    # it after 240k (docs/quick_preset_tuning.md). Every Tracking agent trains that long, evaluated
-    # less often.
+    # Tracking over the racing row: the racing row's budget left all but XDSAC below the hand
+    # controller; SAC passed it with three times that (docs/quick_preset_tuning.md, "The other agents
+    # within the quick budget"). Every Tracking agent trains that long, evaluated less often.
     ("quick", "tracking"): dict(total_steps=240_000, eval_interval=40_000),
-    # Country Road over the racing row: at 80k steps DSAC and XDSAC ended at 15.2 and 13.8 against the
-    # controller's 36.7; XDSAC kept rising as its learning rates decayed and passed it only near 280k.
+    # Country Road over the racing row: with the racing row's budget DSAC and XDSAC ended far below the
+    # hand controller; XDSAC kept rising as its learning rates decayed and passed it only near this
+    # budget (docs/quick_preset_tuning.md, "Country Road: DSAC against XDSAC").
     ("quick", "country_road"): dict(total_steps=320_000, eval_interval=40_000),
 }
 # fmt: on
@@ -153,7 +155,8 @@ PAPER_AGENTS = {
     "intersection": _intersection_agent,
 }
 # The quick preset's optimisation constants per env (any other: the racing ones). On the Intersection
-# α stays fixed; 8 slots at width 64: packing cost more than it saved (docs/performance.md).
+# α stays fixed; 8 slots at width 64: packing cost more than it saved (docs/performance.md, "What it
+# bought").
 QUICK_OPTIMISATION = {"intersection": {"packed_rows": None, **QUICK_INTERSECTION_OPTIMISATION}}
 
 

@@ -41,6 +41,10 @@ def resolve_config(
     fields.update(env=env, algo=algo, preset=preset_name, num_seeds=num_seeds, sweep=tuple(sweep))
     if total_steps is not None:
         fields["total_steps"] = total_steps
+    swept = {name for name, _ in sweep}
+    both = sorted(swept & {key.removeprefix("agent.") for key in overrides or {}})
+    if both:  # the sweep's values would win, and config.json would hold the set value beside them
+        raise ConfigError(f"{both[0]} is both swept (--sweep) and set (--set): give it one way")
     agent_changes: dict[str, str] = {}
     train_names, agent_names = set(train_field_names()), set(field_names())
     for key, value in (overrides or {}).items():

@@ -19,12 +19,13 @@ import os
 import socket
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from xrl_jax.config import TrainConfig
 from xrl_jax.config.scenarios import known_envs
+from xrl_jax.config.user_envs import record_differences, user_env_record
 
 LOCK_NAME = ".lock"
 TEMP_MARK = ".tmp"  # ``.<name>.tmp<pid>``: what write_atomic leaves behind when it is killed mid-write
@@ -141,6 +142,39 @@ def read_rows(path: Path) -> list[dict]:
     return rows
 
 
+_NONFINITE = ("nan", "inf", "-inf")  # encode_metric's spelling of non-finite values
+
+
+def _is_nonfinite(value) -> bool:
+    if isinstance(value, list):
+        return any(_is_nonfinite(item) for item in value)
+    return isinstance(value, str) and value in _NONFINITE
+
+
+class Divergence(NamedTuple):
+    """Where a run's records first hold a non-finite value (ordered by step)."""
+
+    step: int
+    member: str  # the member's file stem
+    metric: str
+
+    def __str__(self) -> str:
+        return f"{self.member.replace('_', ' ')} by step {self.step:,} ({self.metric} not finite)"
+
+
+def first_nonfinite_metric(folder: str | Path) -> Divergence | None:
+    """The earliest metrics line holding a non-finite value: the run diverged by that step (the trainer
+    stops there, keeping the last good checkpoint); None if no line does."""
+    found = []
+    for path in sorted(run_paths(Path(folder))["metrics"].glob("*.jsonl")):
+        for row in read_rows(path):
+            bad = [key for key, value in row.items() if _is_nonfinite(value)]
+            if bad and isinstance(row.get("step"), int):
+                found.append(Divergence(row["step"], path.stem, bad[0]))
+                break
+    return min(found, default=None)
+
+
 def read_document(path: Path, what: str) -> dict:
     """A JSON document of the folder, or :class:`RunFolderError` in one line (missing, unreadable,
     or not a JSON object)."""
@@ -156,7 +190,9 @@ def read_document(path: Path, what: str) -> dict:
 
 
 def read_run_config(folder: str | Path):
-    """The full :class:`~xrl_jax.config.TrainConfig` of a results folder (its ``config.json``)."""
+    """The full :class:`~xrl_jax.config.TrainConfig` of a results folder (its ``config.json``). A run on
+    a user's env is refused (one line) when the env registered now is not the run's: another layout,
+    action space, time limit or registering module (:mod:`xrl_jax.config.user_envs`)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise RunFolderError(f"results folder {folder} does not exist")
@@ -170,6 +206,14 @@ def read_run_config(folder: str | Path):
             f"{folder} trained on {env!r}, an env this process has not registered: --import the module "
             "that registers it (xrl_jax.register_env)"
         )
+    stored = document.get("user_env")
+    if isinstance(stored, dict):  # a user's env: the one registered now must be the run's
+        differences = record_differences(stored, user_env_record(env))
+        if differences:
+            raise RunFolderError(
+                f"{folder} trained on {env!r} as module {stored.get('module')!r} registered it, not as this "
+                f"process has it ({'; '.join(differences)}): --import the module the run was trained with"
+            )
     try:
         return TrainConfig.from_dict(document["config"])
     except (ValueError, KeyError, TypeError) as err:

@@ -15,6 +15,7 @@ import jax
 
 import envs
 from xrl_jax.agents import make_hparams
+from xrl_jax.config.user_envs import user_env_record
 from xrl_jax.runs.folder import member_fields, member_stem
 
 
@@ -57,7 +58,8 @@ def run_metadata(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 def config_document(cfg, argv: list[str] | None = None) -> dict[str, Any]:
-    """The content of ``config.json``: the fully resolved config (incl. resolved agent defaults)."""
+    """The content of ``config.json``: the fully resolved config (incl. resolved agent defaults), and
+    for a user's env its record (:mod:`xrl_jax.config.user_envs`): module, layout, time limit."""
     agent = cfg.agent
     hp = make_hparams(agent, envs.action_size(envs.action_space(cfg.env_name)))
     resolved = {
@@ -70,6 +72,9 @@ def config_document(cfg, argv: list[str] | None = None) -> dict[str, Any]:
         "updates_per_seed": max(0, cfg.total_steps - cfg.warmup_steps),
     }
     doc = {"config": cfg.to_dict(), "resolved": resolved, **run_metadata(argv)}
+    record = user_env_record(cfg.env)
+    if record is not None:  # a user's env: what a resume or a reader must find registered again
+        doc["user_env"] = record
     if cfg.num_points > 1:  # every member's seed, point and values, in the order of the member axis
         doc["members"] = [
             {"member": m, "file": member_stem(cfg, m), **member_fields(cfg, m)}

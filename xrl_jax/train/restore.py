@@ -21,6 +21,7 @@ import numpy as np
 
 from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError, NoGoodCheckpointError
 from xrl_jax.config import HOST_ONLY_FIELDS, ConfigError, TrainConfig
+from xrl_jax.config.user_envs import user_env_record
 from xrl_jax.runs.folder import RunFolderError, checkpoint_dir, read_checkpoint_plan, read_run_config
 from xrl_jax.train import hosts
 from xrl_jax.train.chunk import Trainer, get_trainer, tree_all_finite
@@ -35,6 +36,9 @@ def config_fingerprint(cfg: TrainConfig) -> str:
         fields.pop(host_only)
     if not fields["sweep"]:  # a plain run hashes as before sweeps existed
         fields.pop("sweep")
+    record = user_env_record(cfg.env)
+    if record is not None:  # a user's env: its layout, actions, time limit and module (built-ins: none)
+        fields["user_env"] = record
     return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
 
