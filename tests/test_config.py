@@ -276,3 +276,16 @@ def test_configs_written_before_neutral_flag_keep_their_flagged_neutral_row():
     del old["agent"]["neutral_flag"]
     assert TrainConfig.from_dict(old).agent.neutral_flag is True
     assert TrainConfig.from_dict(cfg.to_dict()).agent.neutral_flag is False  # the original's row
+
+
+def test_the_host_only_settings_are_stripped_in_one_place():
+    """The checkpoints' fingerprint and the trainer's cache key both start from results_fields: a
+    host-only setting changes neither, any other setting changes the fields."""
+    from xrl_jax.config import HOST_ONLY_FIELDS
+
+    cfg = resolve_config("tracking", "xdsac", "smoke")
+    host = cfg.replace(max_group_size=3, memory_budget_gb=1.5, checkpoint_minutes=0.0, num_devices=2)
+    assert not set(HOST_ONLY_FIELDS) & set(cfg.results_fields())
+    assert host.results_fields() == cfg.results_fields()
+    assert host.without_host_settings() == cfg.without_host_settings() == cfg
+    assert cfg.replace(batch_size=8).results_fields() != cfg.results_fields()

@@ -53,7 +53,7 @@ from jax.sharding import PartitionSpec as P
 
 from envs.registry import user_factory
 from xrl_jax.agents import Agent, HyperParams, make_hparams
-from xrl_jax.config import HOST_ONLY_FIELDS, TrainConfig
+from xrl_jax.config import TrainConfig
 from xrl_jax.evaluation import make_evaluate, make_evaluate_multiagent, make_evaluate_resets
 from xrl_jax.sets import MEMBERS_AXIS
 from xrl_jax.tracks import make_envs
@@ -198,11 +198,10 @@ def get_trainer(cfg: TrainConfig, devices: list | None = None) -> Trainer:
     their compilations."""
     devices = mesh_devices(cfg.num_devices) if devices is None else list(devices)
     # Settings that only the host loop reads; the step count matters only for a partial last chunk.
-    key = cfg.replace(
+    key = cfg.without_host_settings().replace(
         seed=0,
         num_seeds=1,
         sweep=(),
-        **{name: TrainConfig.__dataclass_fields__[name].default for name in HOST_ONLY_FIELDS},
         eval_interval=cfg.log_interval,
         checkpoint_interval=cfg.log_interval,
         total_steps=cfg.total_steps if cfg.total_steps % cfg.log_interval else cfg.log_interval,

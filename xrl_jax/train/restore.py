@@ -20,7 +20,7 @@ import jax
 import numpy as np
 
 from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError, NoGoodCheckpointError
-from xrl_jax.config import HOST_ONLY_FIELDS, ConfigError, TrainConfig
+from xrl_jax.config import ConfigError, TrainConfig
 from xrl_jax.runs.folder import RunFolderError, checkpoint_dir, read_checkpoint_plan, read_run_config
 from xrl_jax.train import hosts
 from xrl_jax.train.chunk import Trainer, get_trainer, tree_all_finite
@@ -30,9 +30,7 @@ from xrl_jax.train.memory import padded_members
 def config_fingerprint(cfg: TrainConfig) -> str:
     """A hash of every setting that shapes the run's results (not the host-only settings); stored
     with each checkpoint so that a resume never continues another configuration's state."""
-    fields = cfg.to_dict()
-    for host_only in HOST_ONLY_FIELDS:
-        fields.pop(host_only)
+    fields = cfg.results_fields()
     if not fields["sweep"]:  # a plain run hashes as before sweeps existed
         fields.pop("sweep")
     return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
