@@ -1,5 +1,5 @@
 """``run.py --log tensorboard|wandb``: the trackers receive every record of the run folder, read back
-with the trackers' own readers (TensorBoard's EventAccumulator, W&B's transaction-log DataStore); a
+(TensorBoard's EventAccumulator, W&B's transaction logs as wandb's protocol buffers); a
 resumed run continues the same tracker runs and sends each step once; a failing tracker is dropped and
 the run finishes; a missing extra fails in one line before anything runs."""
 
@@ -13,6 +13,7 @@ from train_support import call, load_script, one_line_error, prepare_cache
 
 from xrl_jax import train as train_mod
 from xrl_jax.runs import trackers as trackers_mod
+from xrl_jax.runs import wandb_log
 
 pytest.importorskip(
     "tensorboard", reason="the tensorboard extra is not installed (pip install -e '.[tensorboard]')"
@@ -60,16 +61,15 @@ def tensorboard_scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
 
 
 def wandb_records(out: Path, run_id: str) -> tuple[list[dict], dict, int]:
-    """The history rows, config and number of transaction logs of W&B run ``run_id`` under ``out``."""
+    """The history rows, config and number of transaction logs of W&B run ``run_id`` under ``out``,
+    read with wandb's own protocol buffers (the log's framing: :mod:`xrl_jax.runs.wandb_log`, since
+    wandb 0.30 has no reader of its own)."""
     from wandb.proto import wandb_internal_pb2
-    from wandb.sdk.internal import datastore
 
     history, config, logs = [], {}, 0
-    for log in sorted((out / "wandb").glob(f"offline-run-*-{run_id}/run-{run_id}.wandb")):
+    for log in wandb_log.run_logs(out, run_id):
         logs += 1
-        store = datastore.DataStore()
-        store.open_for_scan(str(log))
-        while (data := store.scan_data()) is not None:
+        for data in wandb_log.read_records(log):
             record = wandb_internal_pb2.Record()
             record.ParseFromString(data)
             kind = record.WhichOneof("record_type")

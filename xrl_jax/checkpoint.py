@@ -221,9 +221,14 @@ class Checkpointer:
     def _has_manifest(self, step: int) -> bool:
         return (self.directory / str(int(step)) / MANIFEST_NAME).is_file()
 
+    @property
+    def rejected_directory(self) -> Path:
+        """Where damaged checkpoints are set aside: ``<directory>.rejected/<step>-<time>``."""
+        return self.directory.with_name(self.directory.name + ".rejected")
+
     def _set_aside(self, step: int) -> None:
         if jax.process_index() == 0:  # every process reached the same verdict on the shared files
-            rejected = self.directory.with_name(self.directory.name + ".rejected")
+            rejected = self.rejected_directory
             rejected.mkdir(parents=True, exist_ok=True)
             target = rejected / f"{step}-{time.strftime('%Y%m%d-%H%M%S')}"
             shutil.move(str(self.directory / str(step)), str(target))
