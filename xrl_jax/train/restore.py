@@ -21,7 +21,13 @@ import numpy as np
 
 from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError, NoGoodCheckpointError
 from xrl_jax.config import ConfigError, TrainConfig
-from xrl_jax.runs.folder import RunFolderError, checkpoint_dir, read_checkpoint_plan, read_run_config
+from xrl_jax.runs.folder import (
+    RunFolderError,
+    checkpoint_dir,
+    read_checkpoint_plan,
+    read_run_config,
+    run_paths,
+)
 from xrl_jax.train import hosts
 from xrl_jax.train.chunk import Trainer, get_trainer, tree_all_finite
 from xrl_jax.train.memory import padded_members
@@ -165,7 +171,9 @@ def load_trained_agent(run_dir, seed: int = 0, point: int = 0, warn=_warn):
     groups, devices = read_checkpoint_plan(folder, cfg.num_members)
     group_index = next((g for g, members in enumerate(groups) if member in members), None)
     if group_index is None:
-        raise RunFolderError(f"seed {seed} (point {point}) is in no checkpoint group of {folder}/plan.json")
+        raise RunFolderError(
+            f"seed {seed} (point {point}) is in no checkpoint group of {run_paths(folder)['plan']}"
+        )
     trainer, members, agents = _group_agents(folder, cfg, groups[group_index], devices, group_index, warn)
     row = members.index(member)
     return cfg, trainer, jax.tree.map(lambda leaf: leaf[row], agents)
@@ -184,7 +192,7 @@ def load_trained_agents(run_dir, warn=_warn):
             by_member[member] = jax.tree.map(lambda leaf, r=row: leaf[r], agents)
     missing = sorted(set(range(cfg.num_members)) - set(by_member))
     if missing:
-        raise RunFolderError(f"members {missing} are in no checkpoint group of {folder}/plan.json")
+        raise RunFolderError(f"members {missing} are in no checkpoint group of {run_paths(folder)['plan']}")
     ordered = [by_member[member] for member in range(cfg.num_members)]
     stacked = jax.tree.map(lambda *leaves: jax.numpy.stack(leaves), *ordered)
     return cfg, trainer, stacked
