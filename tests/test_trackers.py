@@ -199,7 +199,10 @@ def test_a_killed_session_loses_no_wandb_row(run, capsys, tmp_path):
     they lack: W&B holds every row of the folder, each step once."""
     out = tmp_path / "run"
     args = [*SMOKE, "--steps", "640", "--out", str(out), "--log", "wandb"]  # 10 chunks
-    env = os.environ | {"PYTHONPATH": os.pathsep.join(sys.path)}
+    # A process of its own, as a user's killed run: not attached to this one's W&B service.
+    env = {k: v for k, v in os.environ.items() if k != "WANDB_SERVICE"} | {
+        "PYTHONPATH": os.pathsep.join(sys.path)
+    }
     child = subprocess.Popen([sys.executable, str(ROOT / "experiments" / "run.py"), *args], env=env,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
     try:

@@ -51,8 +51,8 @@ from xrl_jax.train.restore import config_fingerprint, restore_group
 
 
 class DivergenceError(RuntimeError):
-    """A seed produced a non-finite loss or parameter; the message (one line) names the seed, the
-    step and the quantity, and what was kept."""
+    """A seed produced a non-finite loss or parameter, or its env a non-finite reward or observation;
+    the message (one line) names the seed, the step and the quantity, and what was kept."""
 
 
 class DiskFullError(RuntimeError):
@@ -345,10 +345,8 @@ class _HostLoop:
         names = [member_name(self.cfg, m) for m in members]
         diverged = divergence_message(report, names, step, self.trainer.loss_names, agent_of_row, self.rows)
         if diverged:
-            raise DivergenceError(
-                f"{diverged}; stopped, and {self.kept(self.saved_step)} (resuming would diverge again: start "
-                "a new run with other settings, e.g. lower actor_lr and critic_lr)"
-            )
+            line, advice = diverged
+            raise DivergenceError(f"{line}; stopped, and {self.kept(self.saved_step)} ({advice})")
 
     def _evaluate(self, state: RunState, members: list[int], step: int) -> tuple[RunState, tuple]:
         tic = time.perf_counter()

@@ -99,38 +99,55 @@ def metric_lines(
     return lines
 
 
+_LEARNING_ADVICE = (
+    "resuming would diverge again: start a new run with other settings, e.g. lower actor_lr and critic_lr"
+)
+_ENV_ADVICE = "the env produced them, not the learning: fix the env's step, then start a new run"
+_ENV_OUTPUTS = {1: "reward", 2: "observation", 3: "reward and observation"}
+
+
 def divergence_message(
     report: ChunkReport,
     seeds: list,
     chunk_end: int,
     loss_names: tuple[str, ...],
     agent_of_row,
-    rows: list[int] | None = None,
-) -> str | None:
-    """None when every member of the chunk is healthy, else one line naming the first member to go
-    non-finite (``seeds[row]``: its name), the step and the quantity (``agent_of_row(row)`` gives
-    that member's agent state). Only ``rows`` (default: all) are read; when none of them diverged
-    but ``report.unhealthy_members`` says that a member of another process did, the line says so."""
+    rows: Sequence[int] | None = None,
+) -> tuple[str, str] | None:
+    """None when every member of the chunk is healthy, else ``(line, advice)``: the line names the
+    first member to go non-finite (``seeds[row]``: its name), the step and the quantity
+    (``agent_of_row(row)`` gives that member's agent state), or the env's non-finite output where the
+    env returned one first; the advice says what to do. Only ``rows`` (default: all) are read; when none
+    of them diverged but ``report.unhealthy_members`` says that a member of another process did, the
+    line says so."""
     health = report.health
-    loss_step = np.asarray(health.first_nonfinite_step)
+    loss_step, env_step = np.asarray(health.first_nonfinite_step), np.asarray(health.first_nonfinite_env_step)
     rows = range(len(seeds)) if rows is None else rows
-    bad_rows = [r for r in rows if loss_step[r] >= 0 or not health.agent_finite[r]]
+    bad_rows = [r for r in rows if loss_step[r] >= 0 or env_step[r] >= 0 or not health.agent_finite[r]]
     if not bad_rows:
         if int(np.asarray(report.unhealthy_members)) > 0:
-            return (
+            line = (
                 f"a member held by another process diverged by step {chunk_end} (its process's log names it)"
             )
+            return line, _LEARNING_ADVICE
         return None
-    first_step = {r: int(loss_step[r]) if loss_step[r] >= 0 else chunk_end for r in bad_rows}
+    first_step = {
+        r: min([int(s) for s in (loss_step[r], env_step[r]) if s >= 0] or [chunk_end]) for r in bad_rows
+    }
     row = min(bad_rows, key=lambda r: (first_step[r], r))
-    if loss_step[row] >= 0:
-        name = loss_names[int(health.first_nonfinite_loss[row])]
-        what = f"{name} became non-finite"
-    else:
-        what = f"the agent's {first_nonfinite_leaf(agent_of_row(row))} became non-finite"
     others = len(bad_rows) - 1
     also = f" ({others} other{'s' if others > 1 else ''} too)" if others else ""
-    return f"{seeds[row]} diverged at step {first_step[row]}{also}: {what}"
+    if env_step[row] >= 0 and env_step[row] == first_step[row]:
+        what = _ENV_OUTPUTS[int(health.nonfinite_env_outputs[row])]
+        return (
+            f"{seeds[row]}: the env returned a non-finite {what} at step {first_step[row]}{also}",
+            _ENV_ADVICE,
+        )
+    if loss_step[row] >= 0:
+        what = f"{loss_names[int(health.first_nonfinite_loss[row])]} became non-finite"
+    else:
+        what = f"the agent's {first_nonfinite_leaf(agent_of_row(row))} became non-finite"
+    return f"{seeds[row]} diverged at step {first_step[row]}{also}: {what}", _LEARNING_ADVICE
 
 
 def expected_rows(cfg: TrainConfig, next_chunk: int) -> tuple[list[int], list[int]]:
