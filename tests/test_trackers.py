@@ -150,9 +150,9 @@ def test_a_resumed_run_continues_its_tracker_runs(run, capsys, tmp_path, monkeyp
     monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=1))
     both, tensorboard = ["--log", "tensorboard", "--log", "wandb"], ["--log", "tensorboard"]
     status, _, err = call(run, capsys, *SMOKE, "--out", str(out), *both)
-    assert status == 1 and "--resume" in err
+    assert status == 1 and f"--resume {out} --log tensorboard --log wandb" in err  # the --log kept
     status, _, err = call(run, capsys, "--resume", str(out), "--quiet", *tensorboard)
-    assert status == 1 and "--resume" in err
+    assert status == 1 and f"--resume {out} --log tensorboard\n" in err
     monkeypatch.setattr(train_mod, "train", original)
     status, _, err = call(run, capsys, "--resume", str(out), "--quiet", *both)
     assert status == 0, err
@@ -182,6 +182,18 @@ def test_a_missing_extra_fails_in_one_line_before_anything_runs(run, capsys, tmp
     assert not out.exists()
     status, _, err = call(run, capsys, *SMOKE, "--out", str(out), "--log", "mlflow")
     assert status == 2 and "invalid choice" in err
+
+
+def test_an_offline_wandb_run_reports_to_no_error_service(monkeypatch):
+    """Issue 48: W&B printed three retry warnings of its error service (sentry) in offline runs."""
+    monkeypatch.setenv("WANDB_ERROR_REPORTING", "unset")  # undone after the test, like the lines below
+    monkeypatch.delenv("WANDB_ERROR_REPORTING")
+    monkeypatch.setenv("WANDB_MODE", "online")
+    trackers_mod.check_trackers(["wandb"])
+    assert "WANDB_ERROR_REPORTING" not in os.environ
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    trackers_mod.check_trackers(["wandb"])
+    assert not wandb.env.error_reporting_enabled()  # wandb's own switch, read as its service starts
 
 
 def test_tracker_scalars_keep_non_finite_values_and_skip_the_rest():

@@ -151,10 +151,14 @@ class TensorBoardTracker:
         self.writers.clear()
 
 
+def _wandb_offline() -> bool:
+    return os.environ.get("WANDB_MODE", "").lower() in ("offline", "dryrun", "disabled")
+
+
 def quiet_offline_wandb() -> None:
     """An offline W&B run reports nothing to W&B's error service either (its retries printed three
     warnings on a machine without network); set before wandb starts its service."""
-    if os.environ.get("WANDB_MODE", "").lower() in ("offline", "dryrun", "disabled"):
+    if _wandb_offline():
         os.environ.setdefault("WANDB_ERROR_REPORTING", "false")
 
 
@@ -184,7 +188,8 @@ class WandbTracker:
         run_id = self.ids.setdefault(run, f"{self.group}-{run}-{uuid.uuid4().hex[:8]}")
         self.runs[run] = self._wandb.init(
             project=os.environ.get("WANDB_PROJECT", "xrl-jax"), group=self.group, name=run, id=run_id,
-            resume="allow", dir=str(self.out), config=hparams, reinit="create_new",
+            resume=None if _wandb_offline() else "allow",  # offline, W&B ignores it with a warning
+            dir=str(self.out), config=hparams, reinit="create_new",
         )  # fmt: skip
 
     def log(self, run: str, step: int, values: dict[str, float]) -> None:
