@@ -236,7 +236,15 @@ def _train(args, argv, prepared, stop) -> int:
     from xrl_jax.interrupts import RunInterrupted, exit_status
     from xrl_jax.runs import format_curve, format_table
     from xrl_jax.runs.folder import RunFolderError
-    from xrl_jax.train import ConfigError, DiskFullError, DivergenceError, MemoryPlanError, hosts
+    from xrl_jax.runs.trackers import TrackerMirror
+    from xrl_jax.train import (
+        ConfigError,
+        DiskFullError,
+        DivergenceError,
+        FolderWriteError,
+        MemoryPlanError,
+        hosts,
+    )
     from xrl_jax.train.start import LostProcessError, enable_compilation_cache, train_prepared
 
     enable_compilation_cache()
@@ -244,29 +252,43 @@ def _train(args, argv, prepared, stop) -> int:
     primary = hosts.is_primary()  # process 0 talks for the job; the others train quietly
     quiet = args.quiet or not primary
     log = (lambda *a, **k: None) if quiet else (lambda msg: print(msg, file=sys.stderr))
+    warn = lambda msg: print(msg, file=sys.stderr)
     command = [str(Path(__file__)), *(sys.argv[1:] if argv is None else argv)]  # into config.json
     imports = "".join(f" --import {target}" for target in args.imports)
-    resume_command = f"python experiments/run.py --resume {out}{imports}"
+    logs = "".join(f" --log {name}" for name in prepared.trackers)
+    resume_command = f"python experiments/run.py --resume {out}{imports}{logs}"
     stop.resume_hint = resume_command  # from now on the folder can be resumed
     points = f" x {cfg.num_points} sweep points" if cfg.num_points > 1 else ""
     log(
         f"run.py: {cfg.env}/{cfg.algo} preset {cfg.preset}, "
         f"{cfg.num_seeds} seed(s){points} x {cfg.total_steps} steps -> {out}"
     )
+    # The trackers of --log mirror every member's records: process 0 sends them, as they are written.
+    mirror = TrackerMirror(out, cfg, prepared.trackers, warn) if prepared.trackers and primary else None
     try:
-        summary = train_prepared(prepared, progress=not quiet, log=log, stop=stop, command=command)
+        summary = train_prepared(
+            prepared,
+            progress=not quiet,
+            log=log,
+            stop=stop,
+            command=command,
+            progress_fns=() if mirror is None else (mirror,),
+        )
     except (MemoryPlanError, ConfigError, RunFolderError) as err:
         return fail(PROG, err)
     except DivergenceError as err:
         print(f"run.py: diverged: {err}", file=sys.stderr)
         return EXIT_DIVERGED
-    except (DiskFullError, NoGoodCheckpointError) as err:
+    except (DiskFullError, FolderWriteError, NoGoodCheckpointError) as err:
         return fail(PROG, err, EXIT_FAILED)
     except LostProcessError as err:  # JAX's exit handlers would wait for the lost process, then abort
         hosts.leave_at_once(fail(PROG, err, EXIT_FAILED))
     except RunInterrupted as err:
         print(f"\nrun.py: {err}; continue with: {resume_command}", file=sys.stderr)
         return exit_status(err.signum)
+    finally:
+        if mirror is not None:  # what the trackers received is then on their disk
+            mirror.close()
     if summary is None:
         print(f"run.py: stopped early; continue with: {resume_command}", file=sys.stderr)
         return EXIT_FAILED

@@ -180,8 +180,27 @@ def test_the_callers_check_rejects_a_checkpoint(tmp_path):
 def test_a_checkpoint_without_manifest_restores_with_a_warning(tmp_path):
     """Checkpoints of earlier versions have no manifest: they restore, and the log says unverified."""
     checkpointer = _two_checkpoints(tmp_path / "ckpt")
-    (tmp_path / "ckpt" / "20" / MANIFEST_NAME).unlink()
+    for step in ("10", "20"):
+        (tmp_path / "ckpt" / step / MANIFEST_NAME).unlink()
     lines = []
     _, meta = checkpointer.restore_newest_good(jax.eval_shape(make_state), log=lines.append)
     checkpointer.close()
     assert meta["step"] == 20 and len(lines) == 1 and "unverified" in lines[0]
+    assert checkpointer.unverified_steps == [20]
+
+
+def test_a_verified_checkpoint_is_preferred_to_a_newer_one_without_digests(tmp_path):
+    """Issue 48 (e): a kill -9 between orbax's commit and the manifest leaves the newest checkpoint
+    without digests; one flipped byte in it was then restored silently (a resume with other results).
+    Nothing can tell such a checkpoint from a damaged one, so the older, verified checkpoint wins even
+    over an intact one, and the newer one is set aside (the resume saves its step again)."""
+    checkpointer = _two_checkpoints(tmp_path / "ckpt")
+    (tmp_path / "ckpt" / "20" / MANIFEST_NAME).unlink()
+    lines = []
+    state, meta = checkpointer.restore_newest_good(jax.eval_shape(make_state), log=lines.append)
+    checkpointer.close()
+    assert meta["step"] == 10 and checkpointer.unverified_steps == []
+    assert_trees_equal(state, make_state(1.0))
+    assert len(lines) == 1 and "ckpt/20 has no file digests" in lines[0] and "verified step 10" in lines[0]
+    assert latest_step(tmp_path / "ckpt") == 10
+    assert [p.name.split("-")[0] for p in (tmp_path / "ckpt.rejected").iterdir()] == ["20"]

@@ -2,6 +2,7 @@
 
 import functools
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -141,6 +142,7 @@ def test_evaluate_cli_drives_a_bank_runs_agents_on_its_training_and_held_out_tra
     assert status == 0, err
     held_out = json.loads((smoke_run / "evaluation_eval.json").read_text())
     assert held_out["episodes"] == 3 and [row["seed"] for row in held_out["per_seed"]] == [0, 1]
+    assert [row["checkpoint_step"] for row in held_out["per_seed"]] == [192, 192]
     # XDSAC evaluates greedily and each track's start is fixed, so this repeats the run's own final
     # evaluation; only the rounding of another batch shape (2 seeds vmapped there, 1 here) may differ.
     final = json.loads((smoke_run / "summary.json").read_text())["per_seed"]
@@ -157,6 +159,26 @@ def test_evaluate_cli_drives_a_bank_runs_agents_on_its_training_and_held_out_tra
     assert status == 0, err
     assert "final return on 2 train tracks: IQM" in out
     assert json.loads((smoke_run / "evaluation_train.json").read_text())["episodes"] == 2
+
+
+def test_evaluate_cli_says_which_checkpoint_of_a_finished_run_it_used(
+    evaluate_cli, smoke_run, capsys, tmp_path
+):
+    """Issue 48: with a finished run's last checkpoint damaged, evaluate.py used the one before and said
+    "the run has not finished", and evaluation_eval.json did not say which step it evaluated."""
+    finished = tmp_path / "finished"
+    shutil.copytree(smoke_run, finished)
+    data = max((p for p in (finished / "checkpoints" / "group_0" / "192").rglob("*") if p.is_file()),
+               key=lambda p: p.stat().st_size)  # fmt: skip
+    damaged = bytearray(data.read_bytes())
+    damaged[len(damaged) // 2] ^= 0xFF
+    data.write_bytes(bytes(damaged))
+    status, _, err = call(evaluate_cli, capsys, str(finished), "--tracks", "eval")
+    assert status == 0, err
+    assert "using the checkpoint at step 128 of 192 (the run finished, but its last checkpoint" in err, err
+    assert "has not finished" not in err
+    rows = json.loads((finished / "evaluation_eval.json").read_text())["per_seed"]
+    assert [row["checkpoint_step"] for row in rows] == [128, 128]
 
 
 def test_evaluate_cli_offers_every_evaluation_mode(evaluate_cli):
@@ -388,7 +410,7 @@ def test_a_disk_full_at_the_start_ends_in_one_line(run, capsys, tmp_path, monkey
     import errno
     import pathlib
 
-    from xrl_jax.train import loop
+    from xrl_jax.train import loop, memory
 
     out = tmp_path / "full"
     full = OSError(errno.ENOSPC, "No space left on device")
@@ -410,10 +432,53 @@ def test_a_disk_full_at_the_start_ends_in_one_line(run, capsys, tmp_path, monkey
             original_write(path, text)
 
         monkeypatch.setattr(loop, "write_atomic", write_atomic)
+        monkeypatch.setattr(memory, "write_atomic", write_atomic)  # the plan's writer
     status, _, err = call(run, capsys, *SMOKE, "--out", str(out))
     assert status == 1 and len(err.strip().splitlines()) == 1, err
     assert err.startswith(f"run.py: error: the disk of {out} is full (No space left on device)")
     assert "before the run wrote any results" in err and "start it again" in err
+
+
+@pytest.mark.parametrize("folder", ["metrics", "checkpoints"])
+def test_a_folder_made_read_only_mid_run_ends_in_one_line(run, capsys, tmp_path, monkeypatch, folder):
+    """Issue 48: ``chmod -w`` of checkpoints/ or metrics/ mid-run gave a traceback of 15-79 lines (orbax
+    wraps the error of its temporary folder). Now one line, status 1, saying what is kept and how to go
+    on; the resume then finishes the run. (Root ignores chmod, so the refusal is raised here.)"""
+    import errno
+
+    from xrl_jax.checkpoint import Checkpointer
+    from xrl_jax.train import records
+
+    out = tmp_path / "read_only"
+    if folder == "metrics":
+        original_append = records.append_lines
+
+        def append_lines(path, rows):
+            if rows[0]["step"] > 64:
+                raise PermissionError(errno.EACCES, "Permission denied", str(path))
+            original_append(path, rows)
+
+        monkeypatch.setattr(records, "append_lines", append_lines)
+    else:
+        original_save = Checkpointer.save
+
+        def save(self, step, state, metadata):
+            if step > 64:
+                try:
+                    os.makedirs(self.directory / f"{step}.orbax-checkpoint-tmp", exist_ok=True)
+                    raise PermissionError(errno.EACCES, "Permission denied", str(self.directory))
+                except PermissionError as err:
+                    raise ValueError("the checkpoint could not be written") from err  # as orbax wraps it
+            original_save(self, step, state, metadata)
+
+        monkeypatch.setattr(Checkpointer, "save", save)
+    status, _, err = call(run, capsys, *SMOKE, "--out", str(out))
+    assert status == 1 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith(f"run.py: error: cannot write {out / folder}") and "(Permission denied)" in err, err
+    assert "the checkpoint at step 64 of 192 per seed is kept" in err and f"--resume {out}" in err
+    monkeypatch.undo()
+    status, stdout, err = call(run, capsys, "--resume", str(out), "--quiet")
+    assert status == 0 and "final return" in stdout, err
 
 
 def test_checkpoints_also_follow_wall_time(run, capsys, tmp_path, monkeypatch):

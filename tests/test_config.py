@@ -285,3 +285,16 @@ def test_a_setting_both_swept_and_set_is_refused(key):
     with pytest.raises(ConfigError, match=r"^gamma is both swept \(--sweep\) and set \(--set\)"):
         sweep = parse_sweep(["gamma=0.95,0.99"])
         resolve_config("tracking", "xsac", "smoke", overrides={key: "0.9"}, sweep=sweep)
+
+
+def test_the_host_only_settings_are_stripped_in_one_place():
+    """The checkpoints' fingerprint and the trainer's cache key both start from results_fields: a
+    host-only setting changes neither, any other setting changes the fields."""
+    from xrl_jax.config import HOST_ONLY_FIELDS
+
+    cfg = resolve_config("tracking", "xdsac", "smoke")
+    host = cfg.replace(max_group_size=3, memory_budget_gb=1.5, checkpoint_minutes=0.0, num_devices=2)
+    assert not set(HOST_ONLY_FIELDS) & set(cfg.results_fields())
+    assert host.results_fields() == cfg.results_fields()
+    assert host.without_host_settings() == cfg.without_host_settings() == cfg
+    assert cfg.replace(batch_size=8).results_fields() != cfg.results_fields()

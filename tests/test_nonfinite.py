@@ -257,3 +257,53 @@ def test_evaluation_of_a_nan_policy_ends(tmp_path_factory):
 
 if __name__ == "__main__":
     _worker(sys.argv[1], sys.argv[2])
+
+
+@pytest.mark.parametrize("output", ["reward", "observation"])
+def test_an_env_returning_nan_is_named_not_the_learning_rates(tmp_path, output):
+    """Issue 48: an env whose step returns NaN was reported as a loss divergence with advice to lower
+    the learning rates (the NaN reward reached the critic once warm-up ended). The chunk's health
+    check sees the env's outputs: the run stops at the chunk where the env returned it, naming the
+    seed, the step and the output. The check only reads them (training numbers: docs/training.md)."""
+    import importlib.util
+
+    import jax.numpy as jnp
+    from train_support import prepare_cache
+
+    import xrl_jax
+    from xrl_jax.train import DivergenceError, resolve_config, train
+
+    spec = importlib.util.spec_from_file_location(
+        "nearest_goal_nan", ROOT / "docs" / "examples" / "nearest_goal.py"
+    )
+    example = sys.modules["nearest_goal_nan"] = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)  # its dataclasses look their module up while it executes
+
+    class NanGoal(example.NearestGoal):  # from its third step on, every step returns NaN
+        def step_env(self, key, state, action, params):
+            obs, state, reward, terminated, truncated, info = super().step_env(key, state, action, params)
+            broken = state.time >= 3
+            if output == "reward":
+                reward = jnp.where(broken, jnp.nan, reward)
+            else:
+                obs = {**obs, "state": jnp.where(broken, jnp.nan, obs["state"])}
+            return obs, state, reward, terminated, truncated, info
+
+    def make():
+        env = NanGoal()
+        return env, env.default_params
+
+    prepare_cache(tmp_path / "cache")
+    name = f"nan_goal_{output}"
+    xrl_jax.register_env(name, make, max_episode_steps=40)
+    try:
+        cfg = resolve_config(name, "xdsac", "smoke", num_seeds=2)
+        with pytest.raises(DivergenceError) as info:
+            train(cfg, tmp_path / "run", progress=False, log=lambda *_: None)
+    finally:
+        xrl_jax.unregister_env(name)
+        xrl_jax.unregister_env("nearest_goal")
+    message = str(info.value)
+    step = 3 * cfg.num_envs  # the end of the third vector step, the first with time >= 3
+    assert f"seed 0: the env returned a non-finite {output} at step {step} (1 other too)" in message, message
+    assert "fix the env's step" in message and "actor_lr" not in message and "\n" not in message

@@ -289,9 +289,10 @@ def test_one_device_agrees_within_float32_rounding(one_device, sharded):
 def test_two_processes_equal_one_process_and_resume_per_process(sharded, tmp_path):
     """Two processes on 127.0.0.1 (one CPU device each) train the sweep as one job in groups of
     3 members (padded to 4: two per device): each writes the records of its members; process 0
-    writes the summary. Each stops after two chunks and resumes from the job's checkpoints, as a
-    preempted SLURM job would. With two members per device, as in the one-process run on 4
-    devices, the records are equal bit for bit."""
+    writes the summary, and each one's progress callbacks receive every member's records. Each
+    stops after two chunks and resumes from the job's checkpoints, as a preempted SLURM job would.
+    With two members per device, as in the one-process run on 4 devices, the records are equal bit
+    for bit."""
     out = tmp_path / "job"
     port = _free_port()
     driver = (
@@ -302,9 +303,13 @@ def test_two_processes_equal_one_process_and_resume_per_process(sharded, tmp_pat
         "from xrl_jax.train import train\n"
         "cfg = resolve_config('country_road', 'xdsac', 'smoke', num_seeds=2,\n"
         "                     overrides={'max_group_size': '4'}, sweep=parse_sweep(['kappa=-0.01,0,0.1']))\n"
-        f"assert train(cfg, {str(out)!r}, progress=False, log=lambda m: None, stop_after_chunks=2) is None\n"
-        f"summary = train(cfg, {str(out)!r}, resume=True, progress=False, log=lambda m: None)\n"
-        "assert summary['complete']\n"
+        "seen = set()\n"  # every process's progress callbacks get every member's records
+        "def tell(progress):\n"
+        "    seen.update(member for member, _ in progress.metrics)\n"
+        "quiet = dict(progress=False, log=lambda m: None, progress_fns=[tell])\n"
+        f"assert train(cfg, {str(out)!r}, stop_after_chunks=2, **quiet) is None\n"
+        f"summary = train(cfg, {str(out)!r}, resume=True, **quiet)\n"
+        "assert summary['complete'] and seen == set(range(6)), seen\n"
     )
     cache = Path(os.environ["XRL_JAX_CACHE_DIR"])
     procs = [

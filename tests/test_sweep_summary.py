@@ -125,7 +125,7 @@ def test_an_empty_sweep_folder_summarises_without_crashing(tmp_path):
 def _summary_before_sweeps(out, cfg):
     """summarize_run as it was before sweeps (commit 655a59d), the reference for plain runs."""
     from xrl_jax.runs.folder import read_rows as read_jsonl
-    from xrl_jax.runs.summary import _curve, aggregate_metrics
+    from xrl_jax.runs.summary import aggregate_metrics, curve_over_seeds
 
     evaluations = [
         {r["step"]: r for r in read_jsonl(out / "eval" / f"seed_{seed}.jsonl") if "step" in r}
@@ -150,7 +150,7 @@ def _summary_before_sweeps(out, cfg):
             str(s): {k: v for k, v in r.items() if k != "episode_returns"} for s, r in finals.items()
         },
         "aggregate": aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
-        "curve": _curve(evaluations, cfg.env),
+        "curve": curve_over_seeds(evaluations, cfg.env),
         "training_tracks": tracks if cfg.fresh_tracks else {"fresh": False, "bank": cfg.train_tracks},
     }
 

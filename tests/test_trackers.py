@@ -1,11 +1,14 @@
 """``run.py --log tensorboard|wandb``: the trackers receive every record of the run folder, read back
-with the trackers' own readers (TensorBoard's EventAccumulator, W&B's transaction-log DataStore); a
+(TensorBoard's EventAccumulator, W&B's transaction logs as wandb's protocol buffers); a
 resumed run continues the same tracker runs and sends each step once; a failing tracker is dropped and
 the run finishes; a missing extra fails in one line before anything runs."""
 
 import functools
 import json
+import os
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -13,6 +16,7 @@ from train_support import call, load_script, one_line_error, prepare_cache
 
 from xrl_jax import train as train_mod
 from xrl_jax.runs import trackers as trackers_mod
+from xrl_jax.runs import wandb_log
 
 pytest.importorskip(
     "tensorboard", reason="the tensorboard extra is not installed (pip install -e '.[tensorboard]')"
@@ -21,6 +25,7 @@ wandb = pytest.importorskip("wandb", reason="the wandb extra is not installed (p
 
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
 
+ROOT = Path(__file__).resolve().parents[1]
 # 192 steps in three chunks of 64, each evaluated and checkpointed.
 SMOKE = ["--env", "tracking", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet",
          "--set", "checkpoint_interval=64", "--set", "eval_interval=64"]  # fmt: skip
@@ -60,16 +65,15 @@ def tensorboard_scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
 
 
 def wandb_records(out: Path, run_id: str) -> tuple[list[dict], dict, int]:
-    """The history rows, config and number of transaction logs of W&B run ``run_id`` under ``out``."""
+    """The history rows, config and number of transaction logs of W&B run ``run_id`` under ``out``,
+    read with wandb's own protocol buffers (the log's framing: :mod:`xrl_jax.runs.wandb_log`, since
+    wandb 0.30 has no reader of its own)."""
     from wandb.proto import wandb_internal_pb2
-    from wandb.sdk.internal import datastore
 
     history, config, logs = [], {}, 0
-    for log in sorted((out / "wandb").glob(f"offline-run-*-{run_id}/run-{run_id}.wandb")):
+    for log in wandb_log.run_logs(out, run_id):
         logs += 1
-        store = datastore.DataStore()
-        store.open_for_scan(str(log))
-        while (data := store.scan_data()) is not None:
+        for data in wandb_log.read_records(log):
             record = wandb_internal_pb2.Record()
             record.ParseFromString(data)
             kind = record.WhichOneof("record_type")
@@ -146,9 +150,9 @@ def test_a_resumed_run_continues_its_tracker_runs(run, capsys, tmp_path, monkeyp
     monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=1))
     both, tensorboard = ["--log", "tensorboard", "--log", "wandb"], ["--log", "tensorboard"]
     status, _, err = call(run, capsys, *SMOKE, "--out", str(out), *both)
-    assert status == 1 and "--resume" in err
+    assert status == 1 and f"--resume {out} --log tensorboard --log wandb" in err  # the --log kept
     status, _, err = call(run, capsys, "--resume", str(out), "--quiet", *tensorboard)
-    assert status == 1 and "--resume" in err
+    assert status == 1 and f"--resume {out} --log tensorboard\n" in err
     monkeypatch.setattr(train_mod, "train", original)
     status, _, err = call(run, capsys, "--resume", str(out), "--quiet", *both)
     assert status == 0, err
@@ -180,9 +184,98 @@ def test_a_missing_extra_fails_in_one_line_before_anything_runs(run, capsys, tmp
     assert status == 2 and "invalid choice" in err
 
 
+def test_an_offline_wandb_run_reports_to_no_error_service(monkeypatch):
+    """Issue 48: W&B printed three retry warnings of its error service (sentry) in offline runs."""
+    monkeypatch.setenv("WANDB_ERROR_REPORTING", "unset")  # undone after the test, like the lines below
+    monkeypatch.delenv("WANDB_ERROR_REPORTING")
+    monkeypatch.setenv("WANDB_MODE", "online")
+    trackers_mod.check_trackers(["wandb"])
+    assert "WANDB_ERROR_REPORTING" not in os.environ
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    trackers_mod.check_trackers(["wandb"])
+    assert not wandb.env.error_reporting_enabled()  # wandb's own switch, read as its service starts
+
+
 def test_tracker_scalars_keep_non_finite_values_and_skip_the_rest():
     row = {"step": 5, "seed": 0, "point": 0, "sweep": {}, "a/x": 1, "a/nan": "nan", "a/none": None,
            "episode_returns": [1.0, 2.0], "a/inf": "-inf"}  # fmt: skip
     values = trackers_mod.scalar_values(row, "eval/")
     assert set(values) == {"eval/a/x", "eval/a/nan", "eval/a/inf"}
     assert values["eval/a/inf"] == float("-inf") and values["eval/a/nan"] != values["eval/a/nan"]
+
+
+def test_a_killed_session_loses_no_wandb_row(run, capsys, tmp_path):
+    """Issue 48 (b): W&B's service writes its transaction log in 32 KiB blocks and completes it when a
+    run finishes, so a ``kill -9`` lost the rows of the last seconds; trackers.json had marked them
+    sent and the resume never sent them again. Now the resume reads W&B's logs back and sends what
+    they lack: W&B holds every row of the folder, each step once."""
+    out = tmp_path / "run"
+    args = [*SMOKE, "--steps", "640", "--out", str(out), "--log", "wandb"]  # 10 chunks
+    # A process of its own, as a user's killed run: not attached to this one's W&B service.
+    env = {k: v for k, v in os.environ.items() if k != "WANDB_SERVICE"} | {
+        "PYTHONPATH": os.pathsep.join(sys.path)
+    }
+    child = subprocess.Popen([sys.executable, str(ROOT / "experiments" / "run.py"), *args], env=env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        deadline, metrics = time.monotonic() + 300, out / "metrics" / "seed_0.jsonl"
+        while child.poll() is None and time.monotonic() < deadline:
+            if metrics.exists() and len(metrics.read_text().splitlines()) >= 3:
+                break
+            time.sleep(0.1)
+        assert child.poll() is None, child.communicate()[1]
+    finally:
+        child.kill()  # SIGKILL: W&B's service loses what it had not written
+        child.wait()
+    ids = json.loads((out / "trackers.json").read_text())["wandb"]["ids"]
+    assert len(wandb_records(out, ids["seed_0"])[0]) < len(jsonl(metrics))  # rows W&B's disk lacks
+    status, _, err = call(run, capsys, "--resume", str(out), "--quiet", "--log", "wandb")
+    assert status == 0, err
+    assert_wandb_holds_the_folder(out, sessions=2)
+
+
+class _Recording:
+    """A tracker that records what it receives; it holds ``held`` of every run from an earlier session."""
+
+    held = -1
+    received: dict[str, list[int]]
+
+    def __init__(self, out, group, state):
+        self.received = _Recording.received = {}
+
+    def held_step(self, run):
+        return self.held
+
+    def start(self, run, hparams):
+        self.received[run] = []
+
+    def log(self, run, step, values):
+        self.received[run].append(step)
+
+    def flush(self):
+        return True
+
+    def close(self):
+        pass
+
+
+def test_what_a_tracker_holds_is_not_sent_again(tmp_path, monkeypatch):
+    """The other half of (b): rows that reached the tracker's disk before the kill are not sent twice,
+    whatever trackers.json says; and trackers.json marks what a flush put on disk."""
+    from xrl_jax.config import resolve_config
+    from xrl_jax.train.records import Progress
+
+    monkeypatch.setitem(trackers_mod._BACKENDS, "recording", _Recording)
+    monkeypatch.setattr(_Recording, "held", 128)
+    cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=2)
+    for stem in ("seed_0", "seed_1"):
+        (tmp_path / "metrics").mkdir(exist_ok=True)
+        rows = [{"step": s, "seed": int(stem[-1]), "point": 0, "sweep": {}, "x": s} for s in (64, 128, 192)]
+        (tmp_path / "metrics" / f"{stem}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    mirror = trackers_mod.TrackerMirror(tmp_path, cfg, ["recording"])
+    line = {"step": 256, "seed": 0, "point": 0, "sweep": {}, "x": 1.0}
+    mirror(Progress(step=256, group=0, metrics=((0, line), (1, line | {"seed": 1}))))
+    mirror.close()
+    assert _Recording.received == {"seed_0": [192, 256], "seed_1": [192, 256]}
+    sent = json.loads((tmp_path / "trackers.json").read_text())["recording"]["sent"]
+    assert sent == {"seed_0": {"metrics": 256}, "seed_1": {"metrics": 256}}

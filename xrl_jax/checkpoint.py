@@ -11,7 +11,9 @@ Atomic writes do not protect against what happens to the files afterwards (a bad
 short, a stray write). Every checkpoint therefore carries a manifest with a digest of each of its
 files, and :meth:`Checkpointer.restore_newest_good` verifies them before orbax reads anything,
 checks the restored state with a caller's test (the trainer checks that the agent is finite), and
-falls back to the previous checkpoint when the newest is damaged; two are kept for that reason.
+falls back to the previous checkpoint when the newest is damaged; two are kept for that reason. The
+manifest is written after orbax's commit, so a kill in between leaves a committed checkpoint without
+one: a verified checkpoint is always preferred to it.
 """
 
 from __future__ import annotations
@@ -173,20 +175,25 @@ class Checkpointer:
         """``(state, metadata)`` of the newest checkpoint that reads, matches its digests and passes
         ``check(state, metadata)`` (which returns None, or a one-line reason to reject it).
 
-        Each rejected checkpoint is reported through ``log`` in one line and, with ``set_aside`` (the
-        run's writer; never a reader of a folder), moved aside (to ``<directory>.rejected/<step>``),
-        so that it is never restored and a later save of the same step is not blocked. A checkpoint
-        without a digest manifest is restored unverified and its step added to
-        ``unverified_steps``. Raises :class:`NoGoodCheckpointError` when none is good.
+        A checkpoint without a digest manifest (written by an older version, or cut short between
+        its commit and its manifest) is tried only after every one that has a manifest: a verified
+        checkpoint is preferred to a newer unverified one, and one restored unverified has its step
+        added to ``unverified_steps``. Each checkpoint passed over (damaged, rejected by ``check``, or
+        newer than the one restored) is reported through ``log`` in one line and, with ``set_aside``
+        (the run's writer; never a reader of a folder), moved aside (to ``<directory>.rejected/<step>``),
+        so that it is never restored and a later save of the same step is not blocked. Raises
+        :class:`NoGoodCheckpointError` when none is good.
         """
         steps = self.all_steps()
         if not steps:
             raise FileNotFoundError(f"no checkpoint in {self.directory}")
+        with_digests = [s for s in steps if self._has_manifest(s)]
+        order = with_digests + [s for s in steps if s not in with_digests]
         reasons = []
-        for position, step in enumerate(steps):
+        for position, step in enumerate(order):
             try:
-                if not self.verify_files(step):
-                    self.unverified_steps.append(step)
+                verified = self.verify_files(step)
+                if not verified:
                     log(f"checkpoint {self.directory.name}/{step} has no file digests (written by an older "
                         "version or cut short after its commit): restored unverified")  # fmt: skip
                 state, meta = self._read(abstract_state, step)
@@ -195,18 +202,33 @@ class Checkpointer:
                     raise CorruptCheckpointError(problem)
             except CorruptCheckpointError as err:
                 reasons.append(f"step {step}: {err}")
-                older = steps[position + 1] if position + 1 < len(steps) else None
+                older = order[position + 1] if position + 1 < len(order) else None
                 fallback = f"falling back to step {older}" if older is not None else "no older checkpoint"
                 log(f"checkpoint {self.directory.name}/{step} is damaged ({err}); {fallback}")
                 if set_aside:
                     self._set_aside(step)
                 continue
+            if not verified:
+                self.unverified_steps.append(step)
+            for newer in (s for s in order[position + 1 :] if s > step):  # no digests, newer
+                log(f"checkpoint {self.directory.name}/{newer} has no file digests (cut short between its "
+                    f"commit and its digests): passed over for the verified step {step}")  # fmt: skip
+                if set_aside:
+                    self._set_aside(newer)
             return state, meta
         raise NoGoodCheckpointError(f"no usable checkpoint in {self.directory} ({'; '.join(reasons)})")
 
+    def _has_manifest(self, step: int) -> bool:
+        return (self.directory / str(int(step)) / MANIFEST_NAME).is_file()
+
+    @property
+    def rejected_directory(self) -> Path:
+        """Where damaged checkpoints are set aside: ``<directory>.rejected/<step>-<time>``."""
+        return self.directory.with_name(self.directory.name + ".rejected")
+
     def _set_aside(self, step: int) -> None:
         if jax.process_index() == 0:  # every process reached the same verdict on the shared files
-            rejected = self.directory.with_name(self.directory.name + ".rejected")
+            rejected = self.rejected_directory
             rejected.mkdir(parents=True, exist_ok=True)
             target = rejected / f"{step}-{time.strftime('%Y%m%d-%H%M%S')}"
             shutil.move(str(self.directory / str(step)), str(target))

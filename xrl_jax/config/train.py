@@ -11,7 +11,7 @@ from typing import Any
 
 from xrl_jax.config.agent import AgentConfig
 from xrl_jax.config.checks import ConfigError, check_choice, check_known, is_int, is_number, require, setting
-from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, PRESETS, SWEEPABLE_FIELDS
+from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, HOST_ONLY_FIELDS, PRESETS, SWEEPABLE_FIELDS
 from xrl_jax.config.scenarios import Scenario, scenario
 
 
@@ -149,6 +149,19 @@ class TrainConfig:
         out["sweep"] = [[name, list(values)] for name, values in self.sweep]
         out["agent"] = dataclasses.asdict(self.agent)
         return out
+
+    def results_fields(self) -> dict[str, Any]:
+        """:meth:`to_dict` without the settings that only the host loop reads (``HOST_ONLY_FIELDS``):
+        what shapes the compiled program and the results. The one place that strips them, for the
+        checkpoints' config fingerprint and the trainer's cache key (:meth:`without_host_settings`)."""
+        fields = self.to_dict()
+        for name in HOST_ONLY_FIELDS:
+            fields.pop(name)
+        return fields
+
+    def without_host_settings(self) -> TrainConfig:
+        """The same run with the host-only settings at their defaults."""
+        return TrainConfig.from_dict(self.results_fields())
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TrainConfig:

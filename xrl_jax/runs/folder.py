@@ -307,6 +307,18 @@ def is_disk_full(error: BaseException) -> bool:
     return disk_full_reason(error) is not None
 
 
+def refused_write(error: BaseException | None) -> OSError | None:
+    """The write that ``error`` (or what caused it, as orbax wraps it) failed on for want of
+    permission or on a read-only file system, or None for any other error."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if isinstance(error, OSError) and error.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+            return error
+        error = error.__cause__ or error.__context__
+    return None
+
+
 def disk_full_message(out: Path, resume: bool, error: BaseException) -> str:
     """What to do about a disk (or quota) that filled up while a run wrote into ``out``, in one line.
     Before the run's first results (only its start-up files are there, see :func:`holds_results`)

@@ -62,10 +62,11 @@ def learning_curve(out: str | Path, cfg, point: int | None = None) -> list[dict[
         point = 0
     if not 0 <= point < cfg.num_points:
         raise ValueError(f"point {point} is not in 0..{cfg.num_points - 1}")
-    return _curve([evaluations[m] for m in cfg.point_members(point)], cfg.env)
+    return curve_over_seeds([evaluations[m] for m in cfg.point_members(point)], cfg.env)
 
 
-def _curve(evaluations: list[dict[int, dict]], env: str) -> list[dict[str, Any]]:
+def curve_over_seeds(evaluations: list[dict[int, dict]], env: str) -> list[dict[str, Any]]:
+    """:func:`learning_curve` of evaluation rows by step, one dict per seed."""
     steps = sorted(set.intersection(*(set(rows) for rows in evaluations))) if evaluations else []
     curve = []
     for step in steps:
@@ -114,7 +115,7 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
                 "seeds": [cfg.member_point_seed(m)[1] for m in members if final in evaluations[m]],
                 "complete": len(finals) == cfg.num_seeds,
                 "aggregate": aggregate_metrics(finals, cfg.env) if finals else {},
-                "curve": _curve([evaluations[m] for m in members], cfg.env),
+                "curve": curve_over_seeds([evaluations[m] for m in members], cfg.env),
             })  # fmt: skip
         summary |= {
             "seeds": [stems[m] for m in finished],
@@ -154,7 +155,7 @@ def _over_seeds(evaluations: list[dict[int, dict]], cfg) -> dict[str, Any]:
         "complete": len(finals) == cfg.num_seeds,
         "per_seed": {str(s): _per_seed_row(r, drop=_SWEEP_RECORD_FIELDS) for s, r in finals.items()},
         "aggregate": aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
-        "curve": _curve(evaluations, cfg.env),
+        "curve": curve_over_seeds(evaluations, cfg.env),
     }
 
 

@@ -9,7 +9,8 @@ Modules, by what they hold:
 * :mod:`~xrl_jax.train.kinds`: the scenario kinds (racing, multi-agent, a user's env), one object each;
 * :mod:`~xrl_jax.train.chunk`: the compiled chunk over members and devices, its report (:func:`make_trainer`);
 * :mod:`~xrl_jax.train.memory`: bytes per seed and the seed groups that fit;
-* :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`);
+* :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`), its records (:mod:`~xrl_jax.train.records`,
+  :class:`Progress` for its progress callbacks) and what it shows (:mod:`~xrl_jax.train.console`);
 * :mod:`~xrl_jax.train.restore`: a run's checkpoint groups, for a resume and for readers of a folder;
 * :mod:`~xrl_jax.train.evaluate_run`: a trained run's agents evaluated again (:func:`evaluate_run`);
 * :mod:`~xrl_jax.train.start`: a run started as ``experiments/run.py`` asks (joining a job of
@@ -31,8 +32,9 @@ from xrl_jax.tracks import cache_dir, cached_track_bank, track_cache_path
 from xrl_jax.train.chunk import ChunkReport, Trainer, get_trainer, make_trainer
 from xrl_jax.train.evaluate_run import evaluate_run
 from xrl_jax.train.kinds import make_envs, scenario_kind
-from xrl_jax.train.loop import DiskFullError, DivergenceError, train
+from xrl_jax.train.loop import DiskFullError, DivergenceError, FolderWriteError, train
 from xrl_jax.train.memory import MemoryPlanError, estimate_seed_bytes, plan_memory
+from xrl_jax.train.records import Progress
 from xrl_jax.train.restore import load_trained_agent, load_trained_agents
 from xrl_jax.train.step import RunState
 
@@ -43,7 +45,9 @@ __all__ = [
     "ConfigError",
     "DiskFullError",
     "DivergenceError",
+    "FolderWriteError",
     "MemoryPlanError",
+    "Progress",
     "RunState",
     "TrainConfig",
     "Trainer",

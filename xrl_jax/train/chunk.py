@@ -54,7 +54,7 @@ from jax.sharding import PartitionSpec as P
 
 from envs.registry import user_factory
 from xrl_jax.agents import Agent, HyperParams, make_hparams
-from xrl_jax.config import HOST_ONLY_FIELDS, TrainConfig
+from xrl_jax.config import TrainConfig
 from xrl_jax.sets import MEMBERS_AXIS
 from xrl_jax.train.episodes import window_means
 from xrl_jax.train.kinds import scenario_kind
@@ -80,6 +80,8 @@ class ChunkHealth:
     first_nonfinite_step: jax.Array  # transition step of the first non-finite update metric; -1: none
     first_nonfinite_loss: jax.Array  # that metric's index in ``Trainer.loss_names``; -1: none
     agent_finite: jax.Array  # every parameter and optimiser state of the agent is finite
+    first_nonfinite_env_step: jax.Array  # transition step of the env's first non-finite output; -1: none
+    nonfinite_env_outputs: jax.Array  # which at that step: 1 the reward, 2 the observations, 3 both
 
 
 @struct.dataclass
@@ -199,11 +201,10 @@ def get_trainer(cfg: TrainConfig, devices: list | None = None) -> Trainer:
     their compilations."""
     devices = mesh_devices(cfg.num_devices) if devices is None else list(devices)
     # Settings that only the host loop reads; the step count matters only for a partial last chunk.
-    key = cfg.replace(
+    key = cfg.without_host_settings().replace(
         seed=0,
         num_seeds=1,
         sweep=(),
-        **{name: TrainConfig.__dataclass_fields__[name].default for name in HOST_ONLY_FIELDS},
         eval_interval=cfg.log_interval,
         checkpoint_interval=cfg.log_interval,
         total_steps=cfg.total_steps if cfg.total_steps % cfg.log_interval else cfg.log_interval,
@@ -228,7 +229,7 @@ def scan_chunk(parts: MemberParts, state: RunState, start_vector_step):
     """``chunk_vector_steps`` vector steps of one member as one ``lax.scan``; with a partial last
     chunk, the steps past the end of the run are skipped (a real ``lax.cond``)."""
     cfg = parts.cfg
-    step = vector_step(parts)
+    step = with_env_check(vector_step(parts))
 
     def body(state, i):
         return step(state, start_vector_step + i)
@@ -244,6 +245,26 @@ def scan_chunk(parts: MemberParts, state: RunState, start_vector_step):
             return state, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
 
     return jax.lax.scan(body, state, jnp.arange(cfg.chunk_vector_steps, dtype=jnp.int32))
+
+
+def with_env_check(step):
+    """The vector step with one more output, ``env_nonfinite``: whether the env's outputs that training
+    takes in were non-finite (1: the reward, as summed for the metrics; 2: the next observations; 0:
+    neither). It only reads them: the training numbers are unchanged."""
+
+    def checked(state, t):
+        state, out = step(state, t)
+        reward = (~jnp.isfinite(out["reward_sum"])).astype(jnp.int32)
+        return state, out | {"env_nonfinite": reward + 2 * (~tree_all_finite(state.obs)).astype(jnp.int32)}
+
+    return checked
+
+
+def _first_step(flags, start_vector_step, num_envs: int):
+    """The transition step at the end of the first vector step whose flag is set (-1: none), and its index."""
+    first = jnp.argmax(flags)
+    step = jnp.where(jnp.any(flags), (start_vector_step + first + 1) * num_envs, -1).astype(jnp.int32)
+    return step, first
 
 
 def chunk_report(parts: MemberParts, state: RunState, outs, start_vector_step) -> ChunkReport:
@@ -269,17 +290,19 @@ def chunk_report(parts: MemberParts, state: RunState, outs, start_vector_step) -
     metrics["buffer/stored_rows"] = state.buffer.filled_rows
     # e.g. on fresh tracks: distinct tracks driven so far, and resets that found the feed empty
     metrics.update({f"rollout/{k}": v for k, v in parts.venv.counters(state.venv_state).items()})
-    # The first vector step whose update produced a non-finite loss (and which one), and whether
-    # the agent's parameters and optimiser states are still finite: the host stops on either.
+    # The first vector step whose update produced a non-finite loss (and which one), whether the
+    # agent's parameters and optimiser states are still finite, and the first step at which the env
+    # returned a non-finite reward or observation: the host stops on any.
     bad = jnp.stack([~jnp.isfinite(outs["metrics"][k]) for k in _update_metric_order(outs["metrics"])], 1)
     bad_step = jnp.any(bad, axis=1)
-    first = jnp.argmax(bad_step)
+    loss_step, first = _first_step(bad_step, start_vector_step, cfg.num_envs)
+    env_step, env_first = _first_step(outs["env_nonfinite"] > 0, start_vector_step, cfg.num_envs)
     health = ChunkHealth(
-        first_nonfinite_step=jnp.where(
-            jnp.any(bad_step), (start_vector_step + first + 1) * cfg.num_envs, -1
-        ).astype(jnp.int32),
+        first_nonfinite_step=loss_step,
         first_nonfinite_loss=jnp.where(jnp.any(bad_step), jnp.argmax(bad[first]), -1).astype(jnp.int32),
         agent_finite=tree_all_finite(state.agent),
+        first_nonfinite_env_step=env_step,
+        nonfinite_env_outputs=outs["env_nonfinite"][env_first],
     )
     return ChunkReport(metrics=metrics, has_data=has_data, health=health)
 
@@ -304,7 +327,8 @@ def chunk_block(parts: MemberParts, state: RunState, start_vector_step):
     )
     state, report = chunk_members(state, start_vector_step)
     health = report.health
-    unhealthy = jnp.sum((health.first_nonfinite_step >= 0) | ~health.agent_finite, dtype=jnp.int32)
+    bad = (health.first_nonfinite_step >= 0) | ~health.agent_finite | (health.first_nonfinite_env_step >= 0)
+    unhealthy = jnp.sum(bad, dtype=jnp.int32)
     return state, report.replace(unhealthy_members=jax.lax.psum(unhealthy, MEMBER_AXIS))
 
 

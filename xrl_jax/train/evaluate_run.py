@@ -3,8 +3,9 @@
 driven at once with the run's evaluation protocol (docs/algorithms.md §6.1), summarised per seed
 and over seeds, and written into the run's folder.
 
-It restores agents through :func:`~xrl_jax.train.restore.load_trained_agents`, so it sits with the
-trainer, above the folder's readers (:mod:`xrl_jax.runs`) and the protocols (:mod:`xrl_jax.evaluation`).
+It restores agents through :func:`~xrl_jax.train.restore.load_trained_agents_and_steps`, so it sits
+with the trainer, above the folder's readers (:mod:`xrl_jax.runs`) and the protocols
+(:mod:`xrl_jax.evaluation`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from xrl_jax.runs.folder import RunFolderError, evaluation_file, member_fields, 
 from xrl_jax.runs.summary import aggregate_metrics, summary_metrics
 from xrl_jax.sets import MEMBERS_AXIS
 from xrl_jax.train.kinds import scenario_kind
-from xrl_jax.train.restore import load_trained_agents
+from xrl_jax.train.restore import load_trained_agents_and_steps
 
 TRACK_SETS = ("train", "eval")  # the run's fixed training bank, its held-out evaluation tracks
 
@@ -34,8 +35,9 @@ def evaluate_run(
 ) -> Path:
     """Drive every member of the run in ``run`` over the first ``episodes`` tracks (all when None) of
     ``tracks``, one episode per track, with the PRNG key ``key`` and the policies of ``mode``; writes
-    the results per seed, and their IQM with its 95 % CI over seeds per sweep point, into the folder
-    and returns that file's path. ``log`` takes one line per seed and per summary metric.
+    the results per seed (with the step of the checkpoint evaluated), and their IQM with its 95 % CI
+    over seeds per sweep point, into the folder and returns that file's path. ``log`` takes one line
+    per seed and per summary metric.
 
     Raises :class:`~xrl_jax.runs.folder.RunFolderError` (one line) when the folder cannot be
     evaluated so: not a run, an Intersection run (no tracks), training tracks of a run that trained
@@ -43,7 +45,7 @@ def evaluate_run(
     run = Path(run)
     cfg = read_run_config(run)
     scenario_kind(cfg).check_reevaluation(cfg, run, tracks)  # only racing runs have tracks
-    cfg, trainer, agent_states = load_trained_agents(run)
+    cfg, trainer, agent_states, checkpoint_steps = load_trained_agents_and_steps(run)
     params = trainer.env_params if tracks == "train" else trainer.eval_params
     available = int(params.tracks.num_points.shape[0])
     episodes = available if episodes is None else episodes
@@ -53,6 +55,8 @@ def evaluate_run(
     evaluate = jax.jit(jax.vmap(evaluate_one, in_axes=(None, 0), axis_name=MEMBERS_AXIS))
     results = jax.device_get(evaluate(jax.random.PRNGKey(key), agent_states))  # all members at once
     per_seed = [_member_result(cfg, member, results, log) for member in range(cfg.num_members)]
+    for row, step in zip(per_seed, checkpoint_steps, strict=True):
+        row["checkpoint_step"] = step  # what was evaluated: the last step, unless that checkpoint was damaged
     aggregates = []
     for point, values in enumerate(cfg.sweep_points):
         aggregate = aggregate_metrics([per_seed[m] for m in cfg.point_members(point)], cfg.env)

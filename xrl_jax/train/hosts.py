@@ -77,6 +77,22 @@ def fetch(tree):
     return jax.tree.map(one, tree)
 
 
+def fetch_all(tree):
+    """A pytree of (global) arrays as numpy, whole on every process: the rows other processes hold
+    are gathered from them (a collective: every process calls it alike). For the small per-member
+    records a progress callback receives of every member."""
+    if jax.process_count() == 1:
+        return fetch(tree)
+    from jax.experimental import multihost_utils
+
+    def one(x):
+        if not isinstance(x, jax.Array) or x.is_fully_addressable:
+            return np.asarray(jax.device_get(x))
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+    return jax.tree.map(one, tree)
+
+
 def local_rows(sharding, num_rows: int) -> list[int]:
     """The rows of a ``num_rows``-long member axis that this process's devices hold."""
     index_map = sharding.addressable_devices_indices_map((num_rows,))

@@ -4,14 +4,18 @@ in groups, one after another."""
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 
-from xrl_jax.config import TrainConfig
-from xrl_jax.resources import format_bytes, host_memory_available
+from xrl_jax.config import ConfigError, TrainConfig
+from xrl_jax.resources import disk_free_bytes, format_bytes, host_memory_available
+from xrl_jax.runs.folder import read_checkpoint_plan, run_paths, write_atomic
+from xrl_jax.train import hosts
 
 if TYPE_CHECKING:
     from xrl_jax.train.chunk import Trainer
@@ -122,3 +126,54 @@ def padded_members(members: list[int], devices: int) -> list[int]:
     """``members`` repeated at the end up to a multiple of ``devices``: every device holds the same
     number of rows. The repeats train as their originals do and are never written."""
     return members + [members[-1]] * (-len(members) % devices)
+
+
+def plan_run(trainer: Trainer, cfg: TrainConfig, out: Path, resume: bool, log, warn) -> dict[str, Any]:
+    """The run's member groups (:func:`plan_memory`, the same on every process; a resume keeps the
+    grouping its checkpoints were made with), written to the folder's plan and told through ``log``;
+    ``warn`` hears when the disk looks too small for the checkpoints."""
+    plan = plan_memory(trainer, cfg)
+    smallest = int(hosts.gathered(len(plan["groups"][0])).min())  # all processes run the same groups
+    if smallest < len(plan["groups"][0]):
+        plan = plan_memory(trainer, cfg.replace(max_group_size=smallest))
+        plan["groups_limited_by"] = "memory"  # another process's
+    devices = trainer.num_devices
+    if resume and run_paths(out)["plan"].exists():
+        stored_groups, was = read_checkpoint_plan(out, cfg.num_members)
+        plan["groups"], plan["groups_limited_by"] = stored_groups, "the checkpoints"
+        padded = [len(padded_members(g, devices)) for g in stored_groups]
+        if padded != [len(padded_members(g, was)) for g in stored_groups]:
+            raise ConfigError(
+                f"{out} was trained on {was} device(s) in all; its checkpoints hold rows for that "
+                f"count, so resume it on {was} device(s) (--devices, or as many processes as before)"
+            )
+    elif hosts.is_primary():
+        write_atomic(run_paths(out)["plan"], json.dumps(plan, indent=2, sort_keys=True) + "\n")
+    _tell_plan(cfg, plan, devices, log)
+    per_seed = plan["per_seed_bytes"]
+    # Two checkpoints kept per group, plus the one being written; each process writes its members' share.
+    needed = 3 * len(plan["groups"][0]) * (per_seed["buffer"] + per_seed["agent"] + per_seed["env"])
+    needed //= jax.process_count()
+    free = disk_free_bytes(out)
+    if free < needed:
+        warn(f"warning: {format_bytes(free)} free on the disk of {out}, but the checkpoints "
+             f"of a member group need up to {format_bytes(needed)}")  # fmt: skip
+    return plan
+
+
+def _tell_plan(cfg: TrainConfig, plan: dict[str, Any], devices: int, log) -> None:
+    groups, per_seed = plan["groups"], plan["per_seed_bytes"]
+    total, buffer = format_bytes(per_seed["total"]), format_bytes(per_seed["buffer"])
+    what = "seed" if cfg.num_points == 1 else "member (a seed at a sweep point)"
+    log(f"memory: ~{total} per {what} (buffer {buffer}), budget {format_bytes(plan['budget_bytes'])} "
+        f"per device ({plan['budget_source']})")  # fmt: skip
+    if devices > 1 or jax.process_count() > 1:
+        per_device = -(-len(groups[0]) // devices)
+        log(f"devices: {cfg.num_members} members over {devices} devices in {jax.process_count()} "
+            f"process(es), up to {per_device} per device")  # fmt: skip
+    if len(groups) > 1:
+        why = {
+            "max_group_size": f"max_group_size={cfg.max_group_size}",
+            "the checkpoints": "as the run began",
+        }.get(plan["groups_limited_by"], f"memory: {cfg.num_members} members do not fit at once")
+        log(f"{why}: running {len(groups)} groups of up to {len(groups[0])} one after another")

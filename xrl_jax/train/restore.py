@@ -20,9 +20,16 @@ import jax
 import numpy as np
 
 from xrl_jax.checkpoint import Checkpointer, CorruptCheckpointError, NoGoodCheckpointError
-from xrl_jax.config import HOST_ONLY_FIELDS, ConfigError, TrainConfig
+from xrl_jax.config import ConfigError, TrainConfig
 from xrl_jax.config.user_envs import user_env_record
-from xrl_jax.runs.folder import RunFolderError, checkpoint_dir, read_checkpoint_plan, read_run_config
+from xrl_jax.runs.folder import (
+    RunFolderError,
+    checkpoint_dir,
+    is_complete,
+    read_checkpoint_plan,
+    read_run_config,
+    run_paths,
+)
 from xrl_jax.train import hosts
 from xrl_jax.train.chunk import Trainer, get_trainer, tree_all_finite
 from xrl_jax.train.memory import padded_members
@@ -31,9 +38,7 @@ from xrl_jax.train.memory import padded_members
 def config_fingerprint(cfg: TrainConfig) -> str:
     """A hash of every setting that shapes the run's results (not the host-only settings); stored
     with each checkpoint so that a resume never continues another configuration's state."""
-    fields = cfg.to_dict()
-    for host_only in HOST_ONLY_FIELDS:
-        fields.pop(host_only)
+    fields = cfg.results_fields()
     if not fields["sweep"]:  # a plain run hashes as before sweeps existed
         fields.pop("sweep")
     record = user_env_record(cfg.env)
@@ -150,11 +155,13 @@ def _group_agents(folder: Path, cfg: TrainConfig, group: list[int], devices: int
         checkpointer.close()
     step = int(meta.get("step", 0))
     if step < cfg.total_steps:
-        warn(
-            f"{folder}: using the checkpoint at step {step:,} of {cfg.total_steps:,} (the run has not "
-            "finished: it is still going, was stopped, or diverged after that step)"
+        why = (
+            "the run finished, but its last checkpoint could not be used"
+            if is_complete(folder)
+            else "the run has not finished: it is still going, was stopped, or diverged after that step"
         )
-    return trainer, list(stored_members(meta) or group), state.agent
+        warn(f"{folder}: using the checkpoint at step {step:,} of {cfg.total_steps:,} ({why})")
+    return trainer, list(stored_members(meta) or group), state.agent, step
 
 
 def load_trained_agent(run_dir, seed: int = 0, point: int = 0, warn=_warn):
@@ -171,8 +178,10 @@ def load_trained_agent(run_dir, seed: int = 0, point: int = 0, warn=_warn):
     groups, devices = read_checkpoint_plan(folder, cfg.num_members)
     group_index = next((g for g, members in enumerate(groups) if member in members), None)
     if group_index is None:
-        raise RunFolderError(f"seed {seed} (point {point}) is in no checkpoint group of {folder}/plan.json")
-    trainer, members, agents = _group_agents(folder, cfg, groups[group_index], devices, group_index, warn)
+        raise RunFolderError(
+            f"seed {seed} (point {point}) is in no checkpoint group of {run_paths(folder)['plan']}"
+        )
+    trainer, members, agents, _ = _group_agents(folder, cfg, groups[group_index], devices, group_index, warn)
     row = members.index(member)
     return cfg, trainer, jax.tree.map(lambda leaf: leaf[row], agents)
 
@@ -180,17 +189,23 @@ def load_trained_agent(run_dir, seed: int = 0, point: int = 0, warn=_warn):
 def load_trained_agents(run_dir, warn=_warn):
     """``(config, trainer, agent_states)``: every member's agent (a plain run's: every seed's),
     stacked on a leading axis in member order, restoring each checkpoint group once."""
+    return load_trained_agents_and_steps(run_dir, warn)[:3]
+
+
+def load_trained_agents_and_steps(run_dir, warn=_warn):
+    """:func:`load_trained_agents` and, in member order, the step of the checkpoint each came from."""
     folder = Path(run_dir)
     cfg = read_run_config(folder)
     groups, devices = read_checkpoint_plan(folder, cfg.num_members)
-    by_member, trainer = {}, None
+    by_member, steps, trainer = {}, {}, None
     for group_index, group in enumerate(groups):
-        trainer, members, agents = _group_agents(folder, cfg, group, devices, group_index, warn)
+        trainer, members, agents, step = _group_agents(folder, cfg, group, devices, group_index, warn)
         for row, member in enumerate(members):
             by_member[member] = jax.tree.map(lambda leaf, r=row: leaf[r], agents)
+            steps[member] = step
     missing = sorted(set(range(cfg.num_members)) - set(by_member))
     if missing:
-        raise RunFolderError(f"members {missing} are in no checkpoint group of {folder}/plan.json")
+        raise RunFolderError(f"members {missing} are in no checkpoint group of {run_paths(folder)['plan']}")
     ordered = [by_member[member] for member in range(cfg.num_members)]
     stacked = jax.tree.map(lambda *leaves: jax.numpy.stack(leaves), *ordered)
-    return cfg, trainer, stacked
+    return cfg, trainer, stacked, [steps[member] for member in range(cfg.num_members)]

@@ -245,9 +245,8 @@ def train_prepared(run: PreparedRun, **train_options: Any) -> dict[str, Any] | N
     """Train the prepared run (:func:`~xrl_jax.train.loop.train` with ``train_options``) and draw the
     --baseline run into a sweep's figure; returns the summary (None when stopped early)."""
     try:
-        summary = train_package.train(  # looked up at the call, so tests may wrap train()
-            run.cfg, run.out, resume=run.resume, trackers=run.trackers, **train_options
-        )
+        # looked up at the call, so tests may wrap train()
+        summary = train_package.train(run.cfg, run.out, resume=run.resume, **train_options)
     except Exception as err:  # a collective that failed because another process of the job died
         if not hosts.lost_a_process(err):
             raise
