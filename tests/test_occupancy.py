@@ -2,7 +2,6 @@
 
 import itertools
 
-import jax
 import numpy as np
 import pytest
 from network_support import action_size
@@ -81,4 +80,3 @@ def test_intersection_rollout_keeps_the_observations_of_vehicles_that_acted():
         occupancy.rollout_observations("intersection", num_tracks=3)
     with pytest.raises(ValueError, match="unknown scenario"):
         occupancy.rollout_observations("highway")
-    jax.clear_caches()
