@@ -229,6 +229,7 @@ def test_members_on_a_named_axis_share_a_real_branch_and_an_overflow():
             assert np.array_equal(named(keys, states, batch)[1]["packed_overflow"], [0, name != "fits"])
 
 
+@pytest.mark.distributed  # a child process with 4 forced host devices
 def test_four_devices_give_the_dense_update():
     """Members spread over 4 forced host devices (shard_map, as the trainer spreads them), one device's
     member overflowing: every member's update equals the dense computation."""
