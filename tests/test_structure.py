@@ -149,11 +149,14 @@ def stated_layers(text: str) -> list[set[str]]:
 def test_the_docs_state_the_layers_of_this_test(document):
     """The layer order is written once, in LAYERS; the README and docs/layout.md must say the same."""
     stated = stated_layers(ROOT.joinpath(document).with_suffix(".md").read_text(encoding="utf-8"))
-    assert stated == STATED_LAYERS, "\n".join(
-        f"layer {i}: {sorted(got)} stated, {sorted(want)} in LAYERS"
-        for i, (got, want) in enumerate(zip(stated, STATED_LAYERS, strict=False))
-        if got != want
-    ) or f"{len(stated)} layers stated, {len(STATED_LAYERS)} in LAYERS"
+    assert stated == STATED_LAYERS, (
+        "\n".join(
+            f"layer {i}: {sorted(got)} stated, {sorted(want)} in LAYERS"
+            for i, (got, want) in enumerate(zip(stated, STATED_LAYERS, strict=False))
+            if got != want
+        )
+        or f"{len(stated)} layers stated, {len(STATED_LAYERS)} in LAYERS"
+    )
 
 
 def test_the_map_of_the_house_names_every_module():
