@@ -13,6 +13,12 @@ trainer rebuilt for the same configuration. So the controller sets, before any w
   compile by default; the tests compile hundreds of smaller ones twice (once per worker).
 * ``XRL_JAX_CACHE_DIR``: a fresh folder holding the two shipped smoke banks, so the tests neither read
   nor fill the user's cache (``train_support.prepare_cache`` still gives a module its own).
+* ``XLA_FLAGS=--xla_backend_optimization_level=0``: XLA's CPU backend compiles without LLVM's
+  optimisations, about 40 % less compile time; the tests run short programs, so the slower code costs
+  little. The results can differ from an optimised build's in the last bits (LLVM then fuses
+  multiply-adds), which no test may depend on: tolerances follow from the computation, and exact
+  comparisons are between programs of the same run. An optimisation level in ``XLA_FLAGS`` wins
+  (``XLA_FLAGS=--xla_backend_optimization_level=2`` tests the optimised build).
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import shutil
 import sys
 import tempfile
 
+import pytest
 from train_support import seed_track_cache
 
 _OWNED: list[str] = []
@@ -34,6 +41,9 @@ def pytest_configure(config):
         _OWNED.append(tempfile.mkdtemp(prefix="xrl-jax-tests-compiled-"))
         os.environ["JAX_COMPILATION_CACHE_DIR"] = _OWNED[-1]
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_backend_optimization_level" not in flags:  # read when JAX starts its CPU backend
+        os.environ["XLA_FLAGS"] = f"--xla_backend_optimization_level=0 {flags}".strip()
     _OWNED.append(tempfile.mkdtemp(prefix="xrl-jax-tests-cache-"))
     os.environ["XRL_JAX_CACHE_DIR"] = _OWNED[-1]
     if "jax" in sys.modules:  # imported before this file (a plugin): it read the variables already
@@ -49,6 +59,19 @@ def pytest_sessionstart(session):
     if not hasattr(session.config, "workerinput") and session.config.pluginmanager.has_plugin("dsession"):
         return  # the xdist controller runs no test
     seed_track_cache(os.environ["XRL_JAX_CACHE_DIR"])
+
+
+@pytest.hookimpl(optionalhook=True, tryfirst=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``-n`` sends whole test files to a worker (``--dist loadfile``) unless ``--dist`` is given: a
+    file's module fixtures (a smoke run, a compiled agent) are then built once, not once per worker."""
+    if config.getoption("dist") == "load" and not any(
+        arg.startswith(("--dist", "-d")) for arg in config.invocation_params.args
+    ):
+        from xdist.scheduler import LoadFileScheduling
+
+        return LoadFileScheduling(config, log)
+    return None
 
 
 def pytest_unconfigure(config):
