@@ -27,7 +27,11 @@ def random_action(env, params, key):
 
 @pytest.mark.parametrize(
     "name, overrides",
-    [("tracking", SMALL_BANK), ("country_road_discrete", SMALL_BANK), ("intersection", {})],
+    [  # one env per family in the default tier
+        ("tracking", SMALL_BANK),
+        pytest.param("country_road_discrete", SMALL_BANK, marks=pytest.mark.slow),
+        ("intersection", {}),
+    ],
 )
 def test_observations_and_actions_lie_in_gymnax_spaces(name, overrides):
     env, params = carenv_gymnax.make(name, **overrides)
