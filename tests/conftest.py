@@ -13,12 +13,13 @@ trainer rebuilt for the same configuration. So the controller sets, before any w
   compile by default; the tests compile hundreds of smaller ones twice (once per worker).
 * ``XRL_JAX_CACHE_DIR``: a fresh folder holding the two shipped smoke banks, so the tests neither read
   nor fill the user's cache (``train_support.prepare_cache`` still gives a module its own).
-* ``XLA_FLAGS=--xla_backend_optimization_level=0``: XLA's CPU backend compiles without LLVM's
-  optimisations, about 40 % less compile time; the tests run short programs, so the slower code costs
-  little. The results can differ from an optimised build's in the last bits (LLVM then fuses
+* ``JAX_DISABLE_MOST_OPTIMIZATIONS=1``: XLA's CPU backend compiles without LLVM's optimisations
+  (JAX's switch for when "the cost of optimization is greater than that of running a less-optimized
+  program"), about 40 % less compile time; the tests run short programs, so the slower code costs
+  little. Results can differ from an optimised build's in the last bits (LLVM then fuses
   multiply-adds), which no test may depend on: tolerances follow from the computation, and exact
-  comparisons are between programs of the same run. An optimisation level in ``XLA_FLAGS`` wins
-  (``XLA_FLAGS=--xla_backend_optimization_level=2`` tests the optimised build).
+  comparisons are between programs of the same run. ``JAX_DISABLE_MOST_OPTIMIZATIONS=0 python -m pytest``
+  tests the optimised build.
 """
 
 from __future__ import annotations
@@ -41,9 +42,7 @@ def pytest_configure(config):
         _OWNED.append(tempfile.mkdtemp(prefix="xrl-jax-tests-compiled-"))
         os.environ["JAX_COMPILATION_CACHE_DIR"] = _OWNED[-1]
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_backend_optimization_level" not in flags:  # read when JAX starts its CPU backend
-        os.environ["XLA_FLAGS"] = f"--xla_backend_optimization_level=0 {flags}".strip()
+    os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
     _OWNED.append(tempfile.mkdtemp(prefix="xrl-jax-tests-cache-"))
     os.environ["XRL_JAX_CACHE_DIR"] = _OWNED[-1]
     if "jax" in sys.modules:  # imported before this file (a plugin): it read the variables already
@@ -52,6 +51,8 @@ def pytest_configure(config):
         jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
         min_time = float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])
         jax.config.update("jax_persistent_cache_min_compile_time_secs", min_time)
+        disable = os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"].lower() in ("1", "true", "yes", "on")
+        jax.config.update("jax_disable_most_optimizations", disable)
 
 
 def pytest_sessionstart(session):

@@ -63,7 +63,7 @@ def _free_port() -> int:
 
 def _env(cache: Path, devices: int) -> dict:
     env = dict(os.environ, XRL_JAX_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT))
-    env["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}"
+    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
     env.pop("JAX_COORDINATOR_ADDRESS", None)
     return env
 

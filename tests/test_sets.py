@@ -269,8 +269,7 @@ with jax.enable_x64(True):
     assert_same(got, jax.jit(jax.vmap(dense.update))(keys, states, batch))
 print("ok")
 """
-    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"  # keep the run's
-    env = dict(os.environ, PYTHONPATH=str(ROOT), XLA_FLAGS=flags)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), XLA_FLAGS="--xla_force_host_platform_device_count=4")
     done = subprocess.run(
         [sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600
     )
