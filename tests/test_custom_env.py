@@ -103,6 +103,7 @@ def untrained_returns(out: Path) -> np.ndarray:
 
 
 @pytest.mark.slow  # learns: 4,000 steps of 2 seeds
+@pytest.mark.optimised
 def test_xdsac_learns_the_toy_env_and_explains_it(example, capsys, tmp_path):
     run, explain = load_script("run", "run_custom_env"), load_script("explain", "explain_custom_env")
     out = tmp_path / "run"

@@ -107,6 +107,7 @@ def test_intersection_episode_ends_at_its_time_limit_with_per_vehicle_flags():
 
 
 @pytest.mark.slow  # learns: 65,536 steps of rejax's PPO
+@pytest.mark.optimised
 def test_a_third_party_trainer_learns_on_tracking():
     """rejax's PPO (written for gymnax's five-value step, hence legacy_step_api) trains on Tracking
     through envs.gymnax. rejax evaluates 128 episodes before training and at every eval_freq; the
