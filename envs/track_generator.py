@@ -13,6 +13,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from envs.core import default_float
 from envs.track import MAX_CENTERLINE, Track
@@ -92,17 +93,33 @@ def generation_batch_size() -> int:
 def make_track_bank(key: jax.Array, size: int, batch_size: int | None = None) -> Track:
     """`size` independent tracks stacked on a leading axis (a bank, drawn from at every reset).
 
-    Tracks are generated `batch_size` at a time (vmapped inside `lax.map`), by default
-    :func:`generation_batch_size`."""
+    Track ``i`` is generated from ``jax.random.split(key, size)[i]``, `batch_size` tracks at a time
+    (vmapped inside `lax.map`), by default :func:`generation_batch_size`. The keys go through one
+    compiled program in blocks of :func:`generation_block_size` (the last block padded and its extra
+    tracks dropped), so every bank size reuses one compile (~15 s on CPU) instead of compiling its
+    own; a track does not depend on the block it is generated in."""
     if int(size) < 1:
         raise ValueError(f"size must be a positive integer, got {size}")
     if batch_size is None:
         batch_size = generation_batch_size()
     if int(batch_size) < 1:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size}")
-    return _make_bank(key, int(size), min(int(batch_size), int(size)))
+    size, batch_size = int(size), int(batch_size)
+    block = generation_block_size(batch_size)
+    keys = jax.random.split(key, size)
+    padded = keys[np.arange(-(-size // block) * block) % size]  # the last block repeats keys
+    blocks = [_generate_block(padded[start : start + block], batch_size) for start in range(0, size, block)]
+    if len(blocks) == 1:
+        return jax.tree.map(lambda x: x[:size], blocks[0])
+    return jax.tree.map(lambda *parts: jnp.concatenate(parts)[:size], *blocks)
 
 
-@functools.partial(jax.jit, static_argnames=("size", "batch_size"))
-def _make_bank(key: jax.Array, size: int, batch_size: int) -> Track:
-    return jax.lax.map(generate_track, jax.random.split(key, size), batch_size=batch_size)
+def generation_block_size(batch_size: int) -> int:
+    """Keys per compiled call of the bank builder: 16 or more, a whole number of batches. Padding a
+    3-track bank to 16 tracks costs ~0.1 s on CPU, a compile for its size ~15 s."""
+    return batch_size * -(-16 // batch_size)
+
+
+@functools.partial(jax.jit, static_argnames=("batch_size",))
+def _generate_block(keys: jax.Array, batch_size: int) -> Track:
+    return jax.lax.map(generate_track, keys, batch_size=batch_size)

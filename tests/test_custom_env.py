@@ -102,6 +102,8 @@ def untrained_returns(out: Path) -> np.ndarray:
     return np.asarray(jax.device_get(trainer.evaluate(state)[1]["return"]))
 
 
+@pytest.mark.slow  # learns: 4,000 steps of 2 seeds
+@pytest.mark.optimised
 def test_xdsac_learns_the_toy_env_and_explains_it(example, capsys, tmp_path):
     run, explain = load_script("run", "run_custom_env"), load_script("explain", "explain_custom_env")
     out = tmp_path / "run"
@@ -150,6 +152,41 @@ def test_xdsac_learns_the_toy_env_and_explains_it(example, capsys, tmp_path):
         assert all(item["features"][0] == 1.0 for item in row["objects"])
         # 8 float32 softmax weights, each off by a few ulps (6e-8): 1e-5 is far above their sum's error
         assert sum(weights) == pytest.approx(1.0, abs=1e-5)
+
+
+@pytest.fixture
+def fast_env_module():
+    """tests/fast_env.py, the trivial env of the host-side tests; unregistered afterwards."""
+    yield Path(__file__).with_name("fast_env.py")
+    xrl_jax.unregister_env("fast")
+
+
+def test_a_smoke_run_of_a_registered_env_is_reported_and_explained(fast_env_module, capsys, tmp_path):
+    """The default tier's run of a user's env (the learning test above is marked slow): run.py --import
+    trains tests/fast_env.py's env at the smoke preset, report.py tables it, explain.py draws it."""
+    imported = ["--import", str(fast_env_module)]
+    run, report, explain = (load_script(name, f"{name}_fast_env") for name in ("run", "report", "explain"))
+    out = tmp_path / "run"
+    status, _, err = call(run, capsys, *imported, "--env", "fast", "--algo", "xdsac", "--preset", "smoke",
+                          "--seeds", "2", "--quiet", "--out", str(out))  # fmt: skip
+    assert status == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["complete"]
+    assert {"avg_return", "avg_episode_length", "avg_terminated"} <= set(summary["aggregate"])
+    status, _, err = call(report, capsys, *imported, str(out), "--out", str(tmp_path / "rep"))
+    assert status == 0, err
+    table = (tmp_path / "rep" / "results_fast.md").read_text()
+    assert "| final return | terminated share |" in table and "paper:" not in table
+    figure, attributions = tmp_path / "explanation.png", tmp_path / "explanation.jsonl"
+    drawing = ["--run", str(out), "--out", str(figure), "--attributions", str(attributions), "--step", "1"]
+    status, printed, err = call(explain, capsys, *imported, *drawing, "--threshold", "0")
+    assert status == 0, err
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "return" in printed
+    rows = [json.loads(line) for line in attributions.read_text().splitlines()]
+    assert rows and rows[0]["step"] == 0
+    for row in rows:  # 4 float32 softmax weights, each off by a few ulps: 1e-5 is far above their sum's error
+        assert all(item["features"][0] == 1.0 for item in row["objects"])
+        assert sum(item["weight"] for item in row["objects"]) == pytest.approx(1.0, abs=1e-5)
 
 
 def test_a_run_on_an_env_nobody_registered_says_how_to_register_it(capsys, tmp_path):

@@ -38,7 +38,11 @@ def reference_weights(out) -> np.ndarray:
     return weights / weights.sum(-1, keepdims=True)
 
 
-@pytest.fixture(scope="module", params=["sac", "dsac", "xsac", "xdsac"])
+# The mixture agents in the default tier; the baselines' one-component explanations are marked slow.
+@pytest.fixture(
+    scope="module",
+    params=[*(pytest.param(algo, marks=pytest.mark.slow) for algo in ("sac", "dsac")), "xsac", "xdsac"],
+)
 def agent_and_state(request):
     agent = make_agent(
         preset("smoke", "country_road", request.param), dummy_observation(SHAPE), action_size(request.param)

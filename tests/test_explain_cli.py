@@ -193,7 +193,8 @@ def make_intersection_run_folder(folder: Path, algo: str) -> Path:
     from xrl_jax.train import resolve_config
     from xrl_jax.train.restore import shared_trainer
 
-    cfg = resolve_config("intersection", algo, "smoke")
+    # every slot computed: packing (tested in test_sets) would compile both of its branches
+    cfg = resolve_config("intersection", algo, "smoke", overrides={"dense_sets": "true"})
     folder.mkdir(parents=True)
     (folder / "config.json").write_text(json.dumps(config_document(cfg, ["test"])))
     trainer = shared_trainer(cfg)  # the CLI's loads of this config then reuse it

@@ -27,7 +27,11 @@ def random_action(env, params, key):
 
 @pytest.mark.parametrize(
     "name, overrides",
-    [("tracking", SMALL_BANK), ("country_road_discrete", SMALL_BANK), ("intersection", {})],
+    [  # one env per family in the default tier
+        ("tracking", SMALL_BANK),
+        pytest.param("country_road_discrete", SMALL_BANK, marks=pytest.mark.slow),
+        ("intersection", {}),
+    ],
 )
 def test_observations_and_actions_lie_in_gymnax_spaces(name, overrides):
     env, params = carenv_gymnax.make(name, **overrides)
@@ -156,6 +160,8 @@ def test_bad_input_fails_in_one_line_saying_what_is_wrong():
         assert fragment in message and "\n" not in message, (what, message)
 
 
+@pytest.mark.slow  # learns: 65,536 steps of rejax's PPO
+@pytest.mark.optimised
 def test_a_third_party_trainer_learns_on_tracking():
     """rejax's PPO (written for gymnax's five-value step, hence legacy_step_api) trains on Tracking
     through envs.gymnax. rejax evaluates 128 episodes before training and at every eval_freq; the

@@ -519,19 +519,25 @@ def test_fast_path_flops_against_paper_table_1():
 
 @pytest.mark.slow
 def test_fast_path_xla_flops_match_paper_table_1():
-    """XLA's own FLOP count of the jitted fast sampler at full Country Road size (paper Table I)."""
+    """XLA's own FLOP count of the jitted fast sampler at full Country Road size (paper Table I), every
+    slot computed as the paper counts (dense_sets: the paper preset's packing puts a packed and a dense
+    branch in the program, and XLA counts both). The first layer computes the state's half (6 inputs
+    -> 256) once per observation instead of once per slot (docs/benchmarks.md): 99 fewer of those
+    products, 2 * 6 * 256 FLOPs each, than the paper counts."""
     table = {1: 988_262, 2: 14_015_078, 3: 27_041_896}
-    obs = N.dummy_observation(N.ENV_OBSERVATIONS["country_road"])
+    shape = N.ENV_OBSERVATIONS["country_road"]
+    state_half_once = (shape.num_objects - 1) * 2 * shape.state_dim * 256
+    obs = N.dummy_observation(shape)
     obs["cones_set"] = obs["cones_set"].at[:, 0].set(1.0)
     for weight_depth, paper in table.items():
-        nets = costs.country_road_networks("xsac", weight_depth=weight_depth)
+        nets = costs.country_road_networks("xsac", dense_sets=True, weight_depth=weight_depth)
         params = jax.eval_shape(nets.init_actor, KEY)
         sample = lambda p, o, k, nets=nets: nets.actor.apply(p, o, k, method="sample_fast")
         cost = jax.jit(sample).lower(params, obs, KEY).compile().cost_analysis()
         cost = cost[0] if isinstance(cost, list) else cost
         if not cost or "flops" not in cost:
             pytest.skip("backend gives no cost analysis")
-        assert abs(cost["flops"] / paper - 1) < 0.01
+        assert abs((cost["flops"] + state_half_once) / paper - 1) < 0.01, (weight_depth, cost["flops"])
 
 
 # ---------------------------------------------------------------------------------------------

@@ -184,7 +184,14 @@ def _run(tmp_path_factory, what):
         return {k: data[k] for k in data.files}
 
 
-@pytest.fixture(scope="module", params=envs.ENV_NAMES)
+# Every scenario and one discrete variant in the default tier; the other discrete variants are marked slow.
+SLOW_ENVS = ("country_road_discrete", "intersection_discrete")
+
+
+@pytest.fixture(
+    scope="module",
+    params=[pytest.param(env, marks=pytest.mark.slow if env in SLOW_ENVS else ()) for env in envs.ENV_NAMES],
+)
 def stepped(request, tmp_path_factory):
     """``(name, {kind: outputs})`` of one child process per env name."""
     out = _run(tmp_path_factory, request.param)

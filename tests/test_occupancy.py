@@ -5,7 +5,6 @@ import fnmatch
 import itertools
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
 from network_support import action_size
@@ -98,4 +97,3 @@ def test_intersection_rollout_keeps_the_observations_of_vehicles_that_acted():
         occupancy.rollout_observations("intersection", num_tracks=3)
     with pytest.raises(ValueError, match="unknown scenario"):
         occupancy.rollout_observations("highway")
-    jax.clear_caches()

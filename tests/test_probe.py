@@ -127,6 +127,7 @@ def test_xdsac_learns_probe_and_explains_with_the_informative_object():
 
 
 @pytest.mark.slow
+@pytest.mark.optimised
 @pytest.mark.parametrize("algo", ["xsac", "xdsac"])
 def test_probe_other_seeds(algo):
     for seed in (1, 2):

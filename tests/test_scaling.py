@@ -171,6 +171,7 @@ sys.exit(run.main(sys.argv[2:]))
 """
 
 
+@pytest.mark.distributed
 def test_a_process_that_dies_mid_run_ends_the_others_in_one_line(tmp_path):
     """Before: a traceback, then ~70 lines of C++ stack as JAX's shutdown waits for the lost process
     and aborts. Now the collective's error (Gloo on CPU) ends process 0 at once, in one line, status 1,
@@ -213,6 +214,7 @@ sys.exit(run.main(sys.argv[2:]))
 """
 
 
+@pytest.mark.distributed
 def test_a_process_that_checks_the_new_folder_late_still_joins_the_run(tmp_path):
     """Every process refuses a --out that holds results, but only as the folder was before the job
     wrote anything: a process slower to look (here by 3 s) must not find the first files of a faster
@@ -246,6 +248,7 @@ def test_a_sweep_point_equals_a_plain_run_of_its_values(run, one_device, tmp_pat
     assert (one_device / "sweep.png").stat().st_size > 0
 
 
+@pytest.mark.distributed
 def test_four_devices_train_every_member_of_the_sweep(sharded):
     four = sharded / "four"
     plan = json.loads((four / "plan.json").read_text())
@@ -262,6 +265,7 @@ def test_four_devices_train_every_member_of_the_sweep(sharded):
     assert (four / "sweep.png").stat().st_size > 0
 
 
+@pytest.mark.distributed
 def test_one_device_agrees_within_float32_rounding(one_device, sharded):
     """Exact through the warm-up: no update has run yet, so nothing the two programs round
     differently. At the first chunk with updates (U = 64 of them) the bound follows from Adam: its
@@ -286,6 +290,7 @@ def test_one_device_agrees_within_float32_rounding(one_device, sharded):
             assert abs(a[key] - b[key]) <= bound, (name, key, a[key], b[key])
 
 
+@pytest.mark.distributed
 def test_two_processes_equal_one_process_and_resume_per_process(sharded, tmp_path):
     """Two processes on 127.0.0.1 (one CPU device each) train the sweep as one job in groups of
     3 members (padded to 4: two per device): each writes the records of its members; process 0

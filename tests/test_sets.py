@@ -152,7 +152,18 @@ def everything(agent, state, batch, key):
     }
 
 
-@pytest.mark.parametrize("env,algo", list(itertools.product(["country_road", "intersection"], ALGOS)))
+# One agent per env in the default tier (a continuous and a discrete mixture agent); the rest of the
+# env x agent matrix is marked slow.
+DEFAULT_TIER_PAIRS = {("country_road", "xsac"), ("intersection", "xdsac")}
+
+
+@pytest.mark.parametrize(
+    "env,algo",
+    [
+        pytest.param(env, algo, marks=() if (env, algo) in DEFAULT_TIER_PAIRS else pytest.mark.slow)
+        for env, algo in itertools.product(["country_road", "intersection"], ALGOS)
+    ],
+)
 def test_packed_equals_dense_for_every_agent(env, algo):
     """Forward outputs, both losses, their gradients and the actions, on a batch with an empty set, a
     full set and a set whose objects are not in the first slots."""
@@ -229,6 +240,7 @@ def test_members_on_a_named_axis_share_a_real_branch_and_an_overflow():
             assert np.array_equal(named(keys, states, batch)[1]["packed_overflow"], [0, name != "fits"])
 
 
+@pytest.mark.distributed  # a child process with 4 forced host devices
 def test_four_devices_give_the_dense_update():
     """Members spread over 4 forced host devices (shard_map, as the trainer spreads them), one device's
     member overflowing: every member's update equals the dense computation."""

@@ -1,9 +1,11 @@
 """The shape of the house (README, "Where things live"; docs/layout.md): every part of the library
 imports only from the layers below it, no modules import each other in a circle, no module is over
-450 lines and no function over 120. The import graph is read from the source (``ast``), function-level imports
-included, so a deferred import cannot hide an arrow back up."""
+450 lines, no class over 250 and no function over 120. The import graph is read from the source (``ast``),
+function-level imports included, so a deferred import cannot hide an arrow back up. ``LAYERS`` is the one
+list of the layers: the README and docs/layout.md state it, and a test checks that they state it."""
 
 import ast
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -26,8 +28,11 @@ LAYERS = [
     {"report", "explain", "benchmarks"},
     {"campaign"},
 ]
+# What the README and docs/layout.md state: the library's layers, then the scripts of experiments/ on top.
+STATED_LAYERS = [*LAYERS, {"experiments"}]
 LAYER_OF = {part: index for index, layer in enumerate(LAYERS) for part in layer}
 MAX_MODULE_LINES = 450
+MAX_CLASS_LINES = 250
 MAX_FUNCTION_LINES = 120
 
 
@@ -120,6 +125,38 @@ def test_modules_and_functions_stay_small():
                 if length > MAX_FUNCTION_LINES:
                     too_long.append(f"{path.relative_to(ROOT)}: {node.name} is {length} lines")
     assert not too_long, "\n".join(too_long)
+
+
+def test_classes_stay_small():
+    too_long = []
+    for path in source_files():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            length = node.end_lineno - node.lineno + 1 if isinstance(node, ast.ClassDef) else 0
+            if length > MAX_CLASS_LINES:
+                too_long.append(f"{path.relative_to(ROOT)}: class {node.name} is {length} lines")
+    assert not too_long, "\n".join(too_long)
+
+
+def stated_layers(text: str) -> list[set[str]]:
+    """The layers a document states in its sentence "Layers, bottom-up ...: `a`, `b` < `c` < ...":
+    the parts in backticks, ``<`` between layers, asides in parentheses skipped, up to the full stop."""
+    sentence = re.search(r"Layers, bottom-up[^:]*:(.*?)\.(?:\s|$)", re.sub(r"\([^()]*\)", "", text), re.S)
+    assert sentence, "no sentence 'Layers, bottom-up ...: `envs`, `config` < ...'"
+    return [set(re.findall(r"`(\w+)`", layer)) for layer in re.split(r"\s<\s", sentence.group(1))]
+
+
+@pytest.mark.parametrize("document", ["README", "docs/layout"])  # the top-level README
+def test_the_docs_state_the_layers_of_this_test(document):
+    """The layer order is written once, in LAYERS; the README and docs/layout.md must say the same."""
+    stated = stated_layers(ROOT.joinpath(document).with_suffix(".md").read_text(encoding="utf-8"))
+    assert stated == STATED_LAYERS, (
+        "\n".join(
+            f"layer {i}: {sorted(got)} stated, {sorted(want)} in LAYERS"
+            for i, (got, want) in enumerate(zip(stated, STATED_LAYERS, strict=False))
+            if got != want
+        )
+        or f"{len(stated)} layers stated, {len(STATED_LAYERS)} in LAYERS"
+    )
 
 
 def test_the_map_of_the_house_names_every_module():

@@ -455,6 +455,16 @@ def test_bank_is_deterministic(generated):
         G.make_track_bank(BANK_KEY, 4, batch_size=0)
 
 
+def test_every_bank_size_reuses_the_one_compiled_generator(generated):
+    """Banks of any size go through one compiled program (blocks of keys), and track i of a bank does
+    not depend on the bank's size: a 3-track bank is the first 3 tracks of the 64-track one, bit for
+    bit (the keys are a prefix: jax.random.split is partitionable)."""
+    compiled = G._generate_block._cache_size()
+    small = G.make_track_bank(BANK_KEY, 3, batch_size=1)
+    assert G._generate_block._cache_size() == compiled
+    chex.assert_trees_all_equal(small, jax.tree.map(lambda x: x[:3], generated))
+
+
 @pytest.mark.slow
 def test_vmapped_bank_equals_single_draws_and_attempt_statistics():
     """vmap inside the bank (batch_size > 1) gives the same tracks as jit(generate_track) on the

@@ -51,9 +51,13 @@ def _stream_lengths(numbers):
     return jax.vmap(lambda n: generate_track(jax.random.fold_in(KEY, n)).length)(numbers)
 
 
-def _lengths_of_numbers(numbers):
-    """Lengths of the stream's tracks ``numbers``, each generated on its own (not by a feed)."""
-    return np.asarray(_stream_lengths(jnp.asarray(list(numbers), jnp.int32)))
+def _lengths_of_numbers(numbers, padded_to=32):
+    """Lengths of the stream's tracks ``numbers``, each generated on its own (not by a feed); padded to
+    one shape, so that every call reuses one compiled generator."""
+    numbers = list(numbers)
+    assert len(numbers) <= padded_to
+    padded = jnp.asarray(numbers + [0] * (padded_to - len(numbers)), jnp.int32)
+    return np.asarray(_stream_lengths(padded))[: len(numbers)]
 
 
 def _drive(feed_functions, ending, steps, refill_every=None, refill_count=4):

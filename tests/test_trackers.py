@@ -11,9 +11,11 @@ import sys
 import time
 from pathlib import Path
 
+import fast_env
 import pytest
 from train_support import call, load_script, one_line_error, prepare_cache
 
+import xrl_jax
 from xrl_jax import train as train_mod
 from xrl_jax.runs import trackers as trackers_mod
 from xrl_jax.runs import wandb_log
@@ -26,15 +28,18 @@ wandb = pytest.importorskip("wandb", reason="the wandb extra is not installed (p
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-# 192 steps in three chunks of 64, each evaluated and checkpointed.
-SMOKE = ["--env", "tracking", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet",
+# 192 steps in three chunks of 64, each evaluated and checkpointed, on the trivial env of the host-side
+# tests (tests/fast_env.py): what the trackers receive does not depend on the env.
+SMOKE = ["--env", fast_env.NAME, "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet",
          "--set", "checkpoint_interval=64", "--set", "eval_interval=64"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     prepare_cache(tmp_path_factory.mktemp("cache"))
-    return load_script("run", "run_trackers_cli")
+    fast_env.register()
+    yield load_script("run", "run_trackers_cli")
+    xrl_jax.unregister_env(fast_env.NAME)
 
 
 @pytest.fixture(autouse=True)
@@ -210,7 +215,8 @@ def test_a_killed_session_loses_no_wandb_row(run, capsys, tmp_path):
     sent and the resume never sent them again. Now the resume reads W&B's logs back and sends what
     they lack: W&B holds every row of the folder, each step once."""
     out = tmp_path / "run"
-    args = [*SMOKE, "--steps", "640", "--out", str(out), "--log", "wandb"]  # 10 chunks
+    args = [*SMOKE, "--steps", "640", "--out", str(out), "--log", "wandb",  # 10 chunks
+            "--import", str(ROOT / "tests" / "fast_env.py")]  # fmt: skip
     # A process of its own, as a user's killed run: not attached to this one's W&B service.
     env = {k: v for k, v in os.environ.items() if k != "WANDB_SERVICE"} | {
         "PYTHONPATH": os.pathsep.join(sys.path)

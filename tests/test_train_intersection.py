@@ -10,9 +10,10 @@ from train_support import load_script
 from xrl_jax import train as train_mod
 
 # 3 chunks of 64 env steps per seed (2 envs); warm-up = chunk 0; re-initialisation at env step 128.
+# Every slot computed (dense_sets): packing, tested in test_sets, would compile both of its branches.
 SMOKE = [
     "--env", "intersection", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--steps", "192",
-    "--set", "reinit_steps=128", "--set", "buffer_size=4096", "--quiet",
+    "--set", "reinit_steps=128", "--set", "buffer_size=4096", "--set", "dense_sets=true", "--quiet",
 ]  # fmt: skip
 
 

@@ -14,13 +14,21 @@ DATA = Path(__file__).parent / "data"
 def prepare_cache(folder: Path) -> None:
     """Point ``XRL_JAX_CACHE_DIR`` at ``folder`` and seed it with the shipped smoke track banks."""
     os.environ["XRL_JAX_CACHE_DIR"] = str(folder)
-    from xrl_jax.train import track_cache_path
+    seed_track_cache(folder)
+
+
+def seed_track_cache(folder: Path | str) -> None:
+    """Copy the shipped smoke banks into the track cache ``folder`` (atomically: two xdist workers
+    may seed one folder at once)."""
+    from xrl_jax.tracks import cache_dir, track_cache_path
 
     for seed in (0, 1):
-        target = track_cache_path(seed, 3)
+        target = Path(folder) / track_cache_path(seed, 3).relative_to(cache_dir())
         target.parent.mkdir(parents=True, exist_ok=True)
         if not target.exists():
-            shutil.copy(DATA / f"tracks_seed{seed}_size3.npz", target)
+            partial = target.with_suffix(f".tmp{os.getpid()}")
+            shutil.copy(DATA / f"tracks_seed{seed}_size3.npz", partial)
+            os.replace(partial, target)
 
 
 def load_script(name: str, module_name: str):

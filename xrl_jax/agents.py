@@ -272,18 +272,6 @@ class Agent:
         return self.networks.policy.actor_loss(out, critic, alpha, state.hparams.kappa, key)
 
     # ---- one train step ---------------------------------------------------------------------
-    def _scheduled_hparams(self, state: AgentState) -> HyperParams:
-        """The hyper-parameters of this update: with ``lr_decay_updates`` > 0, the three learning
-        rates fall linearly from their set values (update 0) to zero (update ``lr_decay_updates``)."""
-        hp = state.hparams
-        decay = self.config.lr_decay_updates
-        if not decay:
-            return hp
-        scale = jnp.clip(1.0 - state.step / decay, 0.0, 1.0).astype(hp.actor_lr.dtype)
-        return hp.replace(
-            actor_lr=hp.actor_lr * scale, critic_lr=hp.critic_lr * scale, alpha_lr=hp.alpha_lr * scale
-        )
-
     def update(
         self, key: Array, state: AgentState, batch: Mapping[str, Any]
     ) -> tuple[AgentState, dict[str, Array]]:
@@ -294,7 +282,7 @@ class Agent:
         4. α Adam step from step 3's entropy estimates (auto-α only); 5. Polyak from the new critic.
         """
         self.check_batch(batch)
-        hp = self._scheduled_hparams(state)
+        hp = _scheduled_hparams(self.config, state)
         target_key, actor_key = jax.random.split(key)
 
         (critic_loss, critic_aux), critic_grads = jax.value_and_grad(self.critic_loss, has_aux=True)(
@@ -345,53 +333,68 @@ class Agent:
         metrics["ent_coef"] = jnp.exp(log_alpha)  # post-update α for every agent (§7.4)
         packing = set_packing(self.config)
         if packing is not None:
-            metrics["packed_overflow"] = self._packed_overflow(batch, packing)
+            metrics["packed_overflow"] = _packed_overflow(self.obs_shape.set_key, batch, packing)
         return new_state, metrics
 
-    def _packed_overflow(self, batch: Mapping[str, Any], packing) -> Array:
-        """1.0 when the batch's observations or next observations hold more present objects than the
-        Deep Sets' packed rows, so that their layers computed on every slot (xrl_jax.sets); else 0.
-        Averaged over a chunk's updates: how often ``packed_rows`` was too small."""
-        set_key = self.obs_shape.set_key
-
-        def overflows(obs):
-            present = jnp.asarray(obs[set_key])[..., 0] > 0
-            return jnp.sum(present) > packing.capacity(*present.shape)
-
-        return (overflows(batch["obs"]) | overflows(batch["next_obs"])).astype(jnp.result_type(float))
-
-    # ---- input checks -----------------------------------------------------------------------
     def check_batch(self, batch: Mapping[str, Any]) -> None:
         """Raise a clear error for a batch that does not follow the documented layout."""
-        missing = [k for k in BATCH_KEYS if k not in batch]
-        if missing:
-            raise ValueError(f"batch is missing {missing}; expected keys {list(BATCH_KEYS)}")
-        reward = jnp.shape(batch["reward"])
-        if len(reward) != 1:
-            raise ValueError(f"batch['reward'] must have shape (B,), got {reward}")
-        size = reward[0]
-        for name in ("terminated", "truncated"):
-            if jnp.shape(batch[name]) != (size,):
-                raise ValueError(f"batch[{name!r}] must have shape ({size},), got {jnp.shape(batch[name])}")
-        action_shape = self.action_space.shape((size,))
-        if jnp.shape(batch["action"]) != action_shape:
-            raise ValueError(
-                f"batch['action'] must have shape {action_shape} for {self.algo}, "
-                f"got {jnp.shape(batch['action'])}"
-            )
-        expected = {
-            "state": (size, self.obs_shape.state_dim),
-            self.obs_shape.set_key: (size, self.obs_shape.num_objects, self.obs_shape.object_features),
-        }
-        for name in ("obs", "next_obs"):
-            obs = batch[name]
-            if set(obs) != set(expected):
-                raise ValueError(f"batch[{name!r}] must have keys {sorted(expected)}, got {sorted(obs)}")
-            for k, shape in expected.items():
-                if jnp.shape(obs[k]) != shape:
-                    raise ValueError(
-                        f"batch[{name!r}][{k!r}] must have shape {shape}, got {jnp.shape(obs[k])}"
-                    )
+        _check_batch(self, batch)
+
+
+def _scheduled_hparams(config: AgentConfig, state: AgentState) -> HyperParams:
+    """The hyper-parameters of this update: with ``lr_decay_updates`` > 0, the three learning
+    rates fall linearly from their set values (update 0) to zero (update ``lr_decay_updates``)."""
+    hp = state.hparams
+    decay = config.lr_decay_updates
+    if not decay:
+        return hp
+    scale = jnp.clip(1.0 - state.step / decay, 0.0, 1.0).astype(hp.actor_lr.dtype)
+    return hp.replace(
+        actor_lr=hp.actor_lr * scale, critic_lr=hp.critic_lr * scale, alpha_lr=hp.alpha_lr * scale
+    )
+
+
+def _packed_overflow(set_key: str, batch: Mapping[str, Any], packing) -> Array:
+    """1.0 when the batch's observations or next observations hold more present objects than the
+    Deep Sets' packed rows, so that their layers computed on every slot (xrl_jax.sets); else 0.
+    Averaged over a chunk's updates: how often ``packed_rows`` was too small."""
+
+    def overflows(obs):
+        present = jnp.asarray(obs[set_key])[..., 0] > 0
+        return jnp.sum(present) > packing.capacity(*present.shape)
+
+    return (overflows(batch["obs"]) | overflows(batch["next_obs"])).astype(jnp.result_type(float))
+
+
+def _check_batch(agent: Agent, batch: Mapping[str, Any]) -> None:
+    """:meth:`Agent.check_batch`, outside the class to keep it short."""
+    missing = [k for k in BATCH_KEYS if k not in batch]
+    if missing:
+        raise ValueError(f"batch is missing {missing}; expected keys {list(BATCH_KEYS)}")
+    reward = jnp.shape(batch["reward"])
+    if len(reward) != 1:
+        raise ValueError(f"batch['reward'] must have shape (B,), got {reward}")
+    size = reward[0]
+    for name in ("terminated", "truncated"):
+        if jnp.shape(batch[name]) != (size,):
+            raise ValueError(f"batch[{name!r}] must have shape ({size},), got {jnp.shape(batch[name])}")
+    action_shape = agent.action_space.shape((size,))
+    if jnp.shape(batch["action"]) != action_shape:
+        raise ValueError(
+            f"batch['action'] must have shape {action_shape} for {agent.algo}, "
+            f"got {jnp.shape(batch['action'])}"
+        )
+    expected = {
+        "state": (size, agent.obs_shape.state_dim),
+        agent.obs_shape.set_key: (size, agent.obs_shape.num_objects, agent.obs_shape.object_features),
+    }
+    for name in ("obs", "next_obs"):
+        obs = batch[name]
+        if set(obs) != set(expected):
+            raise ValueError(f"batch[{name!r}] must have keys {sorted(expected)}, got {sorted(obs)}")
+        for k, shape in expected.items():
+            if jnp.shape(obs[k]) != shape:
+                raise ValueError(f"batch[{name!r}][{k!r}] must have shape {shape}, got {jnp.shape(obs[k])}")
 
 
 def make_agent(config: AgentConfig, obs_example: Mapping[str, Any], action_size: int) -> Agent:

@@ -261,7 +261,11 @@ def train_prepared(run: PreparedRun, **train_options: Any) -> dict[str, Any] | N
 
 
 def enable_compilation_cache() -> None:
-    """Reuse compiled chunks across runs of the same configuration (a minute of compile on CPU)."""
+    """Reuse compiled chunks across runs of the same configuration (a minute of compile on CPU), in
+    ``XRL_JAX_CACHE_DIR/jax``; where JAX's own cache is already set (``JAX_COMPILATION_CACHE_DIR``),
+    that one as it is (the tests share one cache among all their processes so)."""
+    if jax.config.jax_compilation_cache_dir:
+        return
     path = cache_dir() / "jax"
     try:
         path.mkdir(parents=True, exist_ok=True)
