@@ -518,6 +518,7 @@ def test_fast_path_flops_against_paper_table_1():
 
 
 @pytest.mark.slow
+@pytest.mark.optimised  # XLA counts what it built: unoptimised, it fuses less and counts ~6 % more
 def test_fast_path_xla_flops_match_paper_table_1():
     """XLA's own FLOP count of the jitted fast sampler at full Country Road size (paper Table I), every
     slot computed as the paper counts (dense_sets: the paper preset's packing puts a packed and a dense
