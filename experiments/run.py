@@ -176,15 +176,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    problem = import_user_modules(argv)  # first: the envs they register become --env choices
-    if problem:
-        return fail(PROG, problem)
-    args = build_parser().parse_args(argv)
     from xrl_jax.interrupts import StopController
 
-    # Installed before jax is imported: from here on SIGINT/SIGTERM end the run cleanly at any moment.
+    # Installed before anything slow (a user's module and the jax it imports): from here on SIGINT and
+    # SIGTERM end the run cleanly at any moment.
     with StopController() as stop:
-        return _main(args, argv, stop)
+        problem = import_user_modules(argv)  # first: the envs they register become --env choices
+        if problem:
+            return fail(PROG, problem)
+        return _main(build_parser().parse_args(argv), argv, stop)
 
 
 def _request(args):

@@ -20,6 +20,10 @@ trainer rebuilt for the same configuration. So the controller sets, before any w
   multiply-adds), which no test may depend on: tolerances follow from the computation, and exact
   comparisons are between programs of the same run. ``JAX_DISABLE_MOST_OPTIMIZATIONS=0 python -m pytest``
   tests the optimised build.
+* ``XLA_FLAGS`` gains ``--xla_cpu_use_fusion_emitters=false`` (unless it names that flag): XLA's CPU
+  backend then emits its fused kernels with its older LLVM IR emitter instead of the MLIR fusion
+  emitters, which compiles the tests' programs about 2.5x faster (a Tracking smoke run's: 14 s of
+  backend compilation against 6 s). The same caveat on the last bits holds; run.py never sets it.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ import sys
 import tempfile
 
 import pytest
-from train_support import seed_track_cache
+from train_support import FAST_COMPILING_EMITTERS, seed_track_cache
 
 _OWNED: list[str] = []
 
@@ -43,6 +47,8 @@ def pytest_configure(config):
         os.environ["JAX_COMPILATION_CACHE_DIR"] = _OWNED[-1]
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+    if "--xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILING_EMITTERS}".strip()
     _OWNED.append(tempfile.mkdtemp(prefix="xrl-jax-tests-cache-"))
     os.environ["XRL_JAX_CACHE_DIR"] = _OWNED[-1]
     if "jax" in sys.modules:  # imported before this file (a plugin): it read the variables already

@@ -3,18 +3,22 @@ acts as §8.3's observation-based definition does; it drives Country Road exactl
 (same tracks, same physics; only the cone penalties differ); its CLI and one-line errors."""
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from train_support import call, load_script, one_line_error
+from train_support import call, load_script, one_line_error, production_compile_environ
 
 import envs
 from envs import hand_controller
 from envs.vehicle import body_velocity
 
 controller_cli = load_script("controller", "controller_cli")
+ROOT = Path(__file__).resolve().parents[1]
 
 SPEED_SCALE = 51.86737451785755  # the odometry observation's velocity normaliser (top speed, m/s)
 
@@ -68,13 +72,19 @@ def test_on_tracking_the_state_reading_equals_the_documented_observation_reading
     assert len(np.unique(ours[:, 1])) == 2 and np.any(ours[:, 2] > 0)  # it accelerates and brakes
 
 
-def test_it_drives_country_road_as_tracking_and_the_cli_writes_the_scores(tmp_path, capsys):
+def test_it_drives_country_road_as_tracking_and_the_cli_writes_the_scores(tmp_path):
+    """The CLI runs in a child process compiled as a user's run is (tests/conftest.py compiles the
+    tests' programs another way): "the same drive" in two separately compiled programs rests on both
+    rounding alike where the closed loop switches its throttle, which the tests' compile does not
+    (its drives part after a switch: a return 0.12 apart)."""
     scores = {}
     for scenario in ("tracking", "country_road"):
         out = tmp_path / f"{scenario}.json"
-        status, printed, _ = call(controller_cli, capsys, "--env", scenario, "--episodes", "3",
-                                  "--speeds", "8", "12", "--json", str(out))  # fmt: skip
-        assert status == 0 and "| 8 |" in printed
+        args = ["--env", scenario, "--episodes", "3", "--speeds", "8", "12", "--json", str(out)]
+        script = [sys.executable, str(ROOT / "experiments" / "controller.py"), *args]
+        done = subprocess.run(script, cwd=ROOT, env=production_compile_environ(), capture_output=True,
+                              text=True, timeout=600)  # fmt: skip
+        assert done.returncode == 0 and "| 8 |" in done.stdout, done.stderr[-3000:]
         document = json.loads(out.read_text())
         assert (document["env"], document["episodes"], document["eval_track_seed"]) == (scenario, 3, 1)
         assert [r["target_speed"] for r in document["results"]] == [8.0, 12.0]

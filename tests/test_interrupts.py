@@ -83,7 +83,9 @@ def test_a_real_signal_reaches_the_watcher_and_never_raises_in_the_main_thread()
 def start_run(tmp_path, out, *extra, grace="30"):
     prepare_cache(tmp_path / "cache")
     env = {**os.environ, "XRL_JAX_CACHE_DIR": str(tmp_path / "cache"), "XRL_JAX_STOP_GRACE_S": grace}
-    args = [sys.executable, str(ROOT / "experiments" / "run.py"), "--env", "tracking", "--algo", "xdsac",
+    # The trivial env of the host-side tests (tests/fast_env.py): signals reach the host loop, not the env.
+    fast_env = ["--import", str(ROOT / "tests" / "fast_env.py"), "--env", "fast"]
+    args = [sys.executable, str(ROOT / "experiments" / "run.py"), *fast_env, "--algo", "xdsac",
             "--preset", "smoke", "--out", str(out), *extra]  # fmt: skip
     return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

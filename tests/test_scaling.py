@@ -22,10 +22,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from train_support import call, load_script, one_line_error, prepare_cache
+from train_support import call, load_script, one_line_error, prepare_cache, xla_flags
 
 ROOT = Path(__file__).resolve().parents[1]
-SWEEP = ["--env", "country_road", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet",
+# The sweeps train on the trivial env of the host-side tests (tests/fast_env.py, registered by --import):
+# what is compared here, the members and their records across devices and processes, is the trainer's.
+FAST_ENV = ["--import", str(ROOT / "tests" / "fast_env.py"), "--env", "fast"]
+SWEEP = [*FAST_ENV, "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet",
          "--sweep", "kappa=-0.01,0,0.1"]  # fmt: skip
 POINTS, SEEDS = (-0.01, 0.0, 0.1), 2
 
@@ -63,7 +66,7 @@ def _free_port() -> int:
 
 def _env(cache: Path, devices: int) -> dict:
     env = dict(os.environ, XRL_JAX_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT))
-    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+    env["XLA_FLAGS"] = xla_flags(f"--xla_force_host_platform_device_count={devices}")
     env.pop("JAX_COORDINATOR_ADDRESS", None)
     return env
 
@@ -230,7 +233,7 @@ def test_a_sweep_point_equals_a_plain_run_of_its_values(run, one_device, tmp_pat
     """Same seeds, same values, same member count per device: bit-identical records, also in
     the sweep's per-point summary (a member's stream depends on its seed and point alone)."""
     out = tmp_path / "plain"
-    args = ["--env", "country_road", "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet"]
+    args = [*FAST_ENV, "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet"]
     assert run.main([*args, "--set", "kappa=0.1", "--out", str(out)]) == 0
     sweep_metrics, plain_metrics = records(one_device, "metrics"), records(out, "metrics")
     for seed in range(SEEDS):
@@ -306,7 +309,8 @@ def test_two_processes_equal_one_process_and_resume_per_process(sharded, tmp_pat
         f"hosts.initialize('127.0.0.1:{port}', 2, int(sys.argv[1]), 60)\n"
         "from xrl_jax.config import parse_sweep, resolve_config\n"
         "from xrl_jax.train import train\n"
-        "cfg = resolve_config('country_road', 'xdsac', 'smoke', num_seeds=2,\n"
+        "sys.path.insert(0, 'tests'); import fast_env\n"
+        "cfg = resolve_config('fast', 'xdsac', 'smoke', num_seeds=2,\n"
         "                     overrides={'max_group_size': '4'}, sweep=parse_sweep(['kappa=-0.01,0,0.1']))\n"
         "seen = set()\n"  # every process's progress callbacks get every member's records
         "def tell(progress):\n"

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from network_support import action_size
+from train_support import xla_flags
 
 from xrl_jax import sets
 from xrl_jax.agents import make_agent
@@ -269,7 +270,8 @@ with jax.enable_x64(True):
     assert_same(got, jax.jit(jax.vmap(dense.update))(keys, states, batch))
 print("ok")
 """
-    env = dict(os.environ, PYTHONPATH=str(ROOT), XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    devices = xla_flags("--xla_force_host_platform_device_count=4")
+    env = dict(os.environ, PYTHONPATH=str(ROOT), XLA_FLAGS=devices)
     done = subprocess.run(
         [sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600
     )

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from train_support import prepare_cache
+from train_support import fast_env_registered, prepare_cache
 
 from xrl_jax import train as T
 from xrl_jax.config import AgentConfig
@@ -314,10 +314,15 @@ def test_a_resume_says_what_it_could_not_verify_or_find(tmp_path):
     """Papercuts of issue 28: a resume whose checkpoint has no digest manifest lists it in the summary
     (it was only checked for finiteness), and a resume that finds no checkpoint at all (deleted, or
     every one set aside as damaged) warns that it starts again from step 0 instead of doing so silently."""
+    prepare_cache(tmp_path / "cache")
+    with fast_env_registered() as env:  # the host loop's resume: any env will do
+        cfg = resolve_config(env, "xdsac", "smoke", num_seeds=2)
+        resume_says_what_it_could_not_verify_or_find(tmp_path, cfg)
+
+
+def resume_says_what_it_could_not_verify_or_find(tmp_path, cfg):
     import shutil
 
-    prepare_cache(tmp_path / "cache")
-    cfg = resolve_config("tracking", "xdsac", "smoke", num_seeds=2)
     warnings = []
     quiet = {
         "progress": False,

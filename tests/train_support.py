@@ -4,6 +4,7 @@ Generating even three tracks compiles the generator for ~30 s on CPU, so the tes
 tiny banks the smoke preset uses (training seed 0 and evaluation seed 1, three tracks each).
 """
 
+import contextlib
 import os
 import shutil
 from pathlib import Path
@@ -29,6 +30,38 @@ def seed_track_cache(folder: Path | str) -> None:
             partial = target.with_suffix(f".tmp{os.getpid()}")
             shutil.copy(DATA / f"tracks_seed{seed}_size3.npz", partial)
             os.replace(partial, target)
+
+
+# XLA_FLAGS of the tests' compile (tests/conftest.py says why): faster to compile, rounded differently.
+FAST_COMPILING_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
+
+
+def production_compile_environ() -> dict[str, str]:
+    """``os.environ`` for a child process that compiles as a user's run does: XLA's optimisations on
+    and its default emitters (not the tests' faster-compiling settings)."""
+    env = dict(os.environ, JAX_DISABLE_MOST_OPTIMIZATIONS="0")
+    env["XLA_FLAGS"] = env.get("XLA_FLAGS", "").replace(FAST_COMPILING_EMITTERS, "").strip()
+    return env
+
+
+def xla_flags(*flags: str) -> str:
+    """``XLA_FLAGS`` for a child process: this run's (tests/conftest.py sets some) and ``flags``."""
+    return " ".join([os.environ.get("XLA_FLAGS", ""), *flags]).strip()
+
+
+@contextlib.contextmanager
+def fast_env_registered():
+    """tests/fast_env.py's trivial env registered for the duration (``fast``): a host-side test that
+    only needs a run trains on it, in half the compile time of a scenario's."""
+    import fast_env
+
+    import xrl_jax
+
+    fast_env.register()
+    try:
+        yield fast_env.NAME
+    finally:
+        xrl_jax.unregister_env(fast_env.NAME)
 
 
 def load_script(name: str, module_name: str):
