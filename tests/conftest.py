@@ -88,14 +88,29 @@ def pytest_sessionstart(session):
 @pytest.hookimpl(optionalhook=True, tryfirst=True)
 def pytest_xdist_make_scheduler(config, log):
     """``-n`` sends whole test files to a worker (``--dist loadfile``) unless ``--dist`` is given: a
-    file's module fixtures (a smoke run, a compiled agent) are then built once, not once per worker."""
+    file's module fixtures (a smoke run, a compiled agent) are then built once, not once per worker.
+    The files go out in the order of :func:`pytest_collection_modifyitems`."""
     if config.getoption("dist") == "load" and not any(
         arg.startswith(("--dist", "-d")) for arg in config.invocation_params.args
     ):
         from xdist.scheduler import LoadFileScheduling
 
+        config.option.loadscopereorder = False  # the order below, not xdist's by number of tests
         return LoadFileScheduling(config, log)
     return None
+
+
+@pytest.hookimpl(trylast=True)  # after -m and -k have deselected
+def pytest_collection_modifyitems(config, items):
+    """Files with a learning run (marked ``optimised``: minutes each) first, then the rest by their
+    number of tests, as xdist orders them: the longest work starts first, so that no worker is left
+    with a learning run while the others are done (the marked tiers' time)."""
+    per_file: dict[str, list] = {}
+    for item in items:
+        per_file.setdefault(item.nodeid.split("::")[0], []).append(item)
+    learns = {f for f, tests in per_file.items() if any(t.get_closest_marker("optimised") for t in tests)}
+    order = sorted(per_file, key=lambda f: (f not in learns, -len(per_file[f])))
+    items[:] = [item for f in order for item in per_file[f]]
 
 
 def pytest_unconfigure(config):
