@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from train_support import prepare_cache
+from train_support import FAST_ENV_ARGS, prepare_cache
 
 from xrl_jax.interrupts import StopController, exit_status
 
@@ -84,8 +84,7 @@ def start_run(tmp_path, out, *extra, grace="30"):
     prepare_cache(tmp_path / "cache")
     env = {**os.environ, "XRL_JAX_CACHE_DIR": str(tmp_path / "cache"), "XRL_JAX_STOP_GRACE_S": grace}
     # The trivial env of the host-side tests (tests/fast_env.py): signals reach the host loop, not the env.
-    fast_env = ["--import", str(ROOT / "tests" / "fast_env.py"), "--env", "fast"]
-    args = [sys.executable, str(ROOT / "experiments" / "run.py"), *fast_env, "--algo", "xdsac",
+    args = [sys.executable, str(ROOT / "experiments" / "run.py"), *FAST_ENV_ARGS, "--algo", "xdsac",
             "--preset", "smoke", "--out", str(out), *extra]  # fmt: skip
     return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

@@ -22,13 +22,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from train_support import call, load_script, one_line_error, prepare_cache, xla_flags
+from train_support import FAST_ENV_ARGS, call, load_script, one_line_error, prepare_cache, xla_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 # The sweeps train on the trivial env of the host-side tests (tests/fast_env.py, registered by --import):
 # what is compared here, the members and their records across devices and processes, is the trainer's.
-FAST_ENV = ["--import", str(ROOT / "tests" / "fast_env.py"), "--env", "fast"]
-SWEEP = [*FAST_ENV, "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet",
+SWEEP = [*FAST_ENV_ARGS, "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet",
          "--sweep", "kappa=-0.01,0,0.1"]  # fmt: skip
 POINTS, SEEDS = (-0.01, 0.0, 0.1), 2
 
@@ -233,7 +232,7 @@ def test_a_sweep_point_equals_a_plain_run_of_its_values(run, one_device, tmp_pat
     """Same seeds, same values, same member count per device: bit-identical records, also in
     the sweep's per-point summary (a member's stream depends on its seed and point alone)."""
     out = tmp_path / "plain"
-    args = [*FAST_ENV, "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet"]
+    args = [*FAST_ENV_ARGS, "--algo", "xdsac", "--preset", "smoke", "--seeds", "2", "--quiet"]
     assert run.main([*args, "--set", "kappa=0.1", "--out", str(out)]) == 0
     sweep_metrics, plain_metrics = records(one_device, "metrics"), records(out, "metrics")
     for seed in range(SEEDS):

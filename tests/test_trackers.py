@@ -13,9 +13,15 @@ from pathlib import Path
 
 import fast_env
 import pytest
-from train_support import call, load_script, one_line_error, prepare_cache
+from train_support import (
+    FAST_ENV_MODULE,
+    call,
+    fast_env_registered,
+    load_script,
+    one_line_error,
+    prepare_cache,
+)
 
-import xrl_jax
 from xrl_jax import train as train_mod
 from xrl_jax.runs import trackers as trackers_mod
 from xrl_jax.runs import wandb_log
@@ -37,9 +43,8 @@ SMOKE = ["--env", fast_env.NAME, "--algo", "xdsac", "--preset", "smoke", "--seed
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     prepare_cache(tmp_path_factory.mktemp("cache"))
-    fast_env.register()
-    yield load_script("run", "run_trackers_cli")
-    xrl_jax.unregister_env(fast_env.NAME)
+    with fast_env_registered():
+        yield load_script("run", "run_trackers_cli")
 
 
 @pytest.fixture(autouse=True)
@@ -216,7 +221,7 @@ def test_a_killed_session_loses_no_wandb_row(run, capsys, tmp_path):
     they lack: W&B holds every row of the folder, each step once."""
     out = tmp_path / "run"
     args = [*SMOKE, "--steps", "640", "--out", str(out), "--log", "wandb",  # 10 chunks
-            "--import", str(ROOT / "tests" / "fast_env.py")]  # fmt: skip
+            "--import", FAST_ENV_MODULE]  # fmt: skip
     # A process of its own, as a user's killed run: not attached to this one's W&B service.
     env = {k: v for k, v in os.environ.items() if k != "WANDB_SERVICE"} | {
         "PYTHONPATH": os.pathsep.join(sys.path)

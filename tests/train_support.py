@@ -49,6 +49,11 @@ def xla_flags(*flags: str) -> str:
     return " ".join([os.environ.get("XLA_FLAGS", ""), *flags]).strip()
 
 
+# The trivial env's module, and run.py's arguments that register it by --import and train on it.
+FAST_ENV_MODULE = str(DATA.parent / "fast_env.py")
+FAST_ENV_ARGS = ["--import", FAST_ENV_MODULE, "--env", "fast"]
+
+
 @contextlib.contextmanager
 def fast_env_registered():
     """tests/fast_env.py's trivial env registered for the duration (``fast``): a host-side test that
