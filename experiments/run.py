@@ -11,6 +11,8 @@ stopped and resumed run gives exactly the metrics of an uninterrupted one.
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -181,10 +183,45 @@ def main(argv: list[str] | None = None) -> int:
     # Installed before anything slow (a user's module and the jax it imports): from here on SIGINT and
     # SIGTERM end the run cleanly at any moment.
     with StopController() as stop:
+        split_cpu_host_early(sys.argv[1:] if argv is None else argv)
         problem = import_user_modules(argv)  # first: the envs they register become --env choices
         if problem:
             return fail(PROG, problem)
         return _main(build_parser().parse_args(argv), argv, stop)
+
+
+def split_cpu_host_early(argv: list[str]) -> None:
+    """Split a CPU host into its XLA devices (xrl_jax.train.cpu_devices) before a user's module can
+    start JAX's backend (registering an env runs a few resets): by --devices, by the run that --resume
+    continues, or by the rule for the members that --seeds, --sweep and --set max_group_size ask for.
+    Bad or missing values are left to the full parse, which reports them; a job of several processes
+    splits nothing."""
+    from xrl_jax.config import ConfigError, parse_overrides, parse_sweep
+    from xrl_jax.train import cpu_devices
+
+    early = argparse.ArgumentParser(add_help=False)
+    for option in ("--seeds", "--devices", "--resume", "--coordinator", "--num-processes"):
+        early.add_argument(option)
+    early.add_argument("--sweep", action="append", default=[])
+    early.add_argument("--set", action="append", default=[])
+    try:
+        known, _ = early.parse_known_args(argv)
+        if known.coordinator or known.num_processes:
+            return
+        if known.devices:
+            cpu_devices.split_cpu_host(int(known.devices))
+        elif known.resume:
+            stored = json.loads((Path(known.resume) / "config.json").read_text())["config"]["num_devices"]
+            if stored:
+                cpu_devices.split_cpu_host(int(stored))
+        else:
+            points = math.prod(len(values) for _, values in parse_sweep(known.sweep))
+            members = int(known.seeds or 1) * points
+            group = int(parse_overrides(known.set).get("max_group_size", 0))
+            members = min(members, group) if group > 0 else members
+            cpu_devices.split_cpu_host(cpu_devices.devices_for_members(members, cpu_devices.cpu_cores()))
+    except (ConfigError, OSError, ValueError, KeyError, TypeError, SystemExit):
+        return
 
 
 def _request(args):

@@ -1,7 +1,7 @@
 """Orbax checkpoints of the run state: exact round trip, retention, crash safety, damage detection."""
 
 import shutil
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -13,6 +13,7 @@ from xrl_jax.buffer import buffer_add, buffer_init
 from xrl_jax.checkpoint import (
     MANIFEST_NAME,
     Checkpointer,
+    CorruptCheckpointError,
     NoGoodCheckpointError,
     latest_step,
     restore_checkpoint,
@@ -204,3 +205,44 @@ def test_a_verified_checkpoint_is_preferred_to_a_newer_one_without_digests(tmp_p
     assert len(lines) == 1 and "ckpt/20 has no file digests" in lines[0] and "verified step 10" in lines[0]
     assert latest_step(tmp_path / "ckpt") == 10
     assert [p.name.split("-")[0] for p in (tmp_path / "ckpt.rejected").iterdir()] == ["20"]
+
+
+@struct.dataclass
+class Before:
+    """A state as an older version wrote it."""
+
+    params: Any
+    counter: jax.Array
+
+
+@struct.dataclass
+class After:
+    """The same state with a field added since, listed as one whose zero the older version implied."""
+
+    params: Any
+    counter: jax.Array
+    owed: Any = None
+    FIELDS_ADDED_LATER: ClassVar[tuple[str, ...]] = ("owed",)
+
+
+@struct.dataclass
+class Unlisted:
+    """The same state with a field added since that its class does not list."""
+
+    params: Any
+    counter: jax.Array
+    owed: Any = None
+
+
+def test_a_field_added_since_restores_as_zeros_and_any_other_difference_fails(tmp_path):
+    checkpointer = Checkpointer(tmp_path)
+    checkpointer.save(1, Before(params={"w": jnp.arange(3.0)}, counter=jnp.int32(4)), {"step": 1})
+    owed = jax.ShapeDtypeStruct((2,), jnp.int32)
+    abstract = After(params={"w": jax.ShapeDtypeStruct((3,), jnp.float32)}, counter=jnp.int32(0), owed=owed)
+    state, meta = checkpointer.restore(abstract)
+    assert meta == {"step": 1} and int(state.counter) == 4
+    np.testing.assert_array_equal(state.params["w"], np.arange(3.0))
+    assert state.owed.shape == (2,) and state.owed.dtype == jnp.int32 and not np.any(state.owed)
+    # A field the class does not list is a mismatch like any other: the checkpoint is unreadable.
+    with pytest.raises(CorruptCheckpointError, match="unreadable"):
+        checkpointer.restore(Unlisted(abstract.params, abstract.counter, owed))

@@ -82,3 +82,30 @@ def test_a_buffer_smaller_than_one_step_of_all_agents_is_refused():
         train_mod.resolve_config(
             "intersection", "xdsac", "smoke", overrides={"buffer_size": "8", "batch_size": "8"}
         )
+
+
+def test_members_in_one_program_pay_the_least_owed_until_one_falls_too_far_behind():
+    """The owed-update counter (xrl_jax.train.kinds.multi_agent): members vmapped together pay one
+    count per step, the least owed unless that leaves a member over MAX_OWED_UPDATES behind; all owed
+    before a re-initialisation and at the run's last step; a member alone pays its own every step."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from xrl_jax.sets import MEMBERS_AXIS
+    from xrl_jax.train.kinds.multi_agent import MAX_OWED_UPDATES, updates_to_pay
+
+    cfg = train_mod.resolve_config("intersection", "xdsac", "smoke", overrides={"reinit_steps": "64"})
+    last = cfg.total_vector_steps - 1  # 63: 128 env steps of 2 envs
+    pay = jax.jit(jax.vmap(lambda owed, t: updates_to_pay(cfg, owed, t), (0, None), axis_name=MEMBERS_AXIS))
+    assert np.all(pay(jnp.array([3, 10]), 5) == 3)  # the least owed
+    most = MAX_OWED_UPDATES + 900
+    assert np.all(pay(jnp.array([0, most]), 5) == 900)  # no member more than MAX_OWED_UPDATES behind
+    assert np.all(pay(jnp.array([3, 10]), last) == 10)  # the last step pays everything
+    # Vector step 32 (env steps 64 and 65) starts with a re-initialisation: step 31 pays everything.
+    assert np.all(pay(jnp.array([3, 10]), 31) == 10) and np.all(pay(jnp.array([3, 10]), 30) == 3)
+    alone = jax.jit(lambda owed, t: updates_to_pay(cfg, owed, t))
+    assert int(alone(jnp.int32(7), 5)) == 7 and int(alone(jnp.int32(most), 5)) == most
+    # Under a vmap of another name the members do not share a count: each pays its own.
+    other = jax.jit(jax.vmap(lambda owed, t: updates_to_pay(cfg, owed, t), (0, None), axis_name="other"))
+    assert np.all(other(jnp.array([3, 10]), 5) == jnp.array([3, 10]))

@@ -27,6 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import flax.serialization
 import jax
 import orbax.checkpoint as ocp
 
@@ -39,6 +40,13 @@ class CorruptCheckpointError(RuntimeError):
 
 class NoGoodCheckpointError(RuntimeError):
     """No checkpoint of a folder can be trusted; the message lists why, one reason per checkpoint."""
+
+
+def _zeros(shape: jax.ShapeDtypeStruct) -> jax.Array:
+    """Zeros laid out as the restored arrays are (the same sharding, e.g. over a run's devices)."""
+    make = lambda: jax.numpy.zeros(shape.shape, shape.dtype)
+    sharding = getattr(shape, "sharding", None)
+    return jax.jit(make, out_shardings=sharding)() if sharding is not None else make()
 
 
 def file_digests(folder: Path) -> dict[str, str]:
@@ -145,13 +153,35 @@ class Checkpointer:
 
     def _read(self, abstract_state: Any, step: int) -> tuple[Any, dict]:
         target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state)
-        args = ocp.args.Composite(state=ocp.args.StandardRestore(target), meta=ocp.args.JsonRestore())
+        absent = self._fields_added_since(target, step)
+        read_as = target
+        if absent:  # read what the older version wrote; the fields it did not have start from zero
+            read_as = flax.serialization.to_state_dict(target)
+            for name in absent:
+                del read_as[name]
+        args = ocp.args.Composite(state=ocp.args.StandardRestore(read_as), meta=ocp.args.JsonRestore())
         try:
             restored = self._manager.restore(step, args=args)
             state, meta = restored.state, dict(restored.meta)
         except Exception as err:  # orbax and tensorstore raise many types for damaged files
             raise CorruptCheckpointError(f"unreadable ({_first_line(err)})") from err
+        if absent:
+            state = dict(state) | {name: jax.tree.map(_zeros, getattr(target, name)) for name in absent}
+            state = flax.serialization.from_state_dict(target, state)
         return state, meta
+
+    def _fields_added_since(self, target: Any, step: int) -> list[str]:
+        """The fields of ``target`` that checkpoint ``step`` lacks because an older version wrote it:
+        only those its class lists in ``FIELDS_ADDED_LATER`` (each one whose zero is what the older
+        versions implied), so that any other difference still fails as unreadable."""
+        added = [n for n in getattr(type(target), "FIELDS_ADDED_LATER", ()) if getattr(target, n) is not None]
+        if not added:
+            return []
+        try:
+            stored = self._manager.item_metadata(step)["state"].tree
+        except Exception:  # damaged metadata: the restore itself reports it
+            return []
+        return [name for name in added if name not in stored]
 
     def metadata(self, step: int | None = None) -> dict:
         """The metadata of checkpoint ``step`` (default: newest) without reading the state, e.g. to

@@ -116,7 +116,8 @@ class PresentRows:
         return math.prod(self.batch_shape)
 
 
-def _axis_bound(name: str) -> bool:
+def axis_bound(name: str) -> bool:
+    """Whether a ``vmap`` (or mapped) axis called ``name`` is bound where this is traced."""
     try:
         jax.lax.axis_size(name)
     except NameError:
@@ -151,7 +152,7 @@ def find_present_rows(present: Array, capacity: int, members_axis: str | None = 
 
 def _every_member(fits: Array, members_axis: str | None) -> Array:
     """``fits`` of every member on the named vmap axis (if bound), else this call's own."""
-    if members_axis is not None and _axis_bound(members_axis):
+    if members_axis is not None and axis_bound(members_axis):
         return jax.lax.psum((~fits).astype(jnp.int32), members_axis) == 0
     return fits
 

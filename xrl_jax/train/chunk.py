@@ -200,14 +200,16 @@ def get_trainer(cfg: TrainConfig, devices: list | None = None) -> Trainer:
     the swept values) and on the devices: runs of the same configuration in one process share
     their compilations."""
     devices = mesh_devices(cfg.num_devices) if devices is None else list(devices)
-    # Settings that only the host loop reads; the step count matters only for a partial last chunk.
+    # Settings that only the host loop reads; the step count matters only for a partial last chunk,
+    # or where the kind's steps read it (the Intersection pays its owed updates at the run's end).
+    keeps_length = cfg.total_steps % cfg.log_interval or scenario_kind(cfg).steps_read_run_length
     key = cfg.without_host_settings().replace(
         seed=0,
         num_seeds=1,
         sweep=(),
         eval_interval=cfg.log_interval,
         checkpoint_interval=cfg.log_interval,
-        total_steps=cfg.total_steps if cfg.total_steps % cfg.log_interval else cfg.log_interval,
+        total_steps=cfg.total_steps if keeps_length else cfg.log_interval,
     )
     # A user's env registered again under the same name is another env: its factory is in the key.
     cache_key = (key, cfg.scenario, user_factory(cfg.env), tuple(d.id for d in devices))

@@ -28,7 +28,7 @@ from xrl_jax.runs.folder import (
 from xrl_jax.runs.plots import plot_sweep
 from xrl_jax.runs.trackers import check_trackers
 from xrl_jax.tracks import cache_dir
-from xrl_jax.train import hosts
+from xrl_jax.train import cpu_devices, hosts
 from xrl_jax.train.chunk import mesh_devices
 from xrl_jax.train.loop import DiskFullError
 
@@ -172,6 +172,23 @@ def _baseline(request: RunRequest, cfg: TrainConfig) -> tuple[dict | None, str |
     return baseline, None
 
 
+def _split_cpu_host(cfg: TrainConfig, new_run: bool) -> TrainConfig:
+    """Split a CPU host into XLA devices before JAX's backend starts (:mod:`~xrl_jax.train.cpu_devices`):
+    as many as the run's ``num_devices`` (given, or stored by the run a resume continues), or, for a
+    new run of one process that leaves it at 0, as many as the measured rule gives. A new run on a
+    CPU writes the count it got into its config, so that its resumes split the host alike; an older
+    run's 0 keeps the devices it had; on an accelerator the run spreads over all of them as before."""
+    if cfg.num_devices:
+        cpu_devices.split_cpu_host(cfg.num_devices)
+        return cfg
+    if not new_run or jax.distributed.is_initialized():
+        return cfg
+    cpu_devices.split_cpu_host(cpu_devices.auto_cpu_devices(cfg, cpu_devices.cpu_cores()))
+    if jax.default_backend() == "cpu":  # split now, or before (run.py, the user's XLA_FLAGS): as it is
+        return cfg.replace(num_devices=len(jax.local_devices()))
+    return cfg
+
+
 def _devices_problem(cfg: TrainConfig) -> str | None:
     try:
         mesh_devices(cfg.num_devices)
@@ -232,6 +249,7 @@ def prepare_run(request: RunRequest, results_root: Path) -> PreparedRun:
     else:
         cfg = requested_config(request)
     check_trackers(request.trackers)
+    cfg = _split_cpu_host(cfg, new_run=request.resume is None)
     baseline, problem = _baseline(request, cfg)
     problem = _devices_problem(cfg) or problem
     if problem:  # before anything is written

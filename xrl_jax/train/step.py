@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -48,6 +48,13 @@ class RunState:
     episode_length: jax.Array  # (actors,)
     window: EpisodeWindow
     feed: Any = None  # on fresh tracks: the envs' track feed (envs.track_feed.FreshTrackEnvs)
+    # On the Intersection: gradient steps owed for transitions already stored (int32; None elsewhere,
+    # so that the racing runs' checkpoints keep their layout). xrl_jax.train.kinds.multi_agent.
+    owed_updates: Any = None
+
+    # Fields that checkpoints of older versions lack and that restore as zeros (xrl_jax.checkpoint):
+    # those versions paid every update in the step of its transition, so they never owed one.
+    FIELDS_ADDED_LATER: ClassVar[tuple[str, ...]] = ("owed_updates",)
 
     @property
     def venv_state(self):
@@ -124,6 +131,7 @@ def init_member(parts: MemberParts, base_seed, index, hparams) -> RunState:
         episode_return=jnp.zeros(parts.actors, parts.float_dtype),
         episode_length=jnp.zeros(parts.actors, jnp.int32),
         window=window_init(parts.float_dtype),
+        owed_updates=parts.kind.initial_owed_updates(),
     )
 
 
@@ -138,14 +146,22 @@ def zero_metrics(parts: MemberParts):
     return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), parts.metric_shapes)
 
 
-def maybe_reinitialise(parts: MemberParts, agent_state, first_transition, key):
-    """Primacy-bias reset (docs/carenv-intersection.md §8.6): a fresh agent (same traced hyper-parameters)
-    whenever a step counted from 1 in this vector step is a multiple of ``reinit_steps``."""
-    period = parts.cfg.reinit_steps
+def reinitialises(cfg: TrainConfig, t) -> jax.Array:
+    """Whether vector step ``t`` starts with a primacy-bias reset (docs/carenv-intersection.md §8.6):
+    a step counted from 1 in it is a multiple of ``reinit_steps`` (False without resets)."""
+    period = cfg.reinit_steps
     if not period:
+        return jnp.bool_(False)
+    first_transition = t * cfg.num_envs
+    last = first_transition + cfg.num_envs - 1
+    return (last // period) * period >= jnp.maximum(first_transition, 1)
+
+
+def maybe_reinitialise(parts: MemberParts, agent_state, t, key):
+    """A fresh agent (same traced hyper-parameters) when vector step ``t`` :func:`reinitialises`."""
+    if not parts.cfg.reinit_steps:
         return agent_state
-    last = first_transition + parts.cfg.num_envs - 1
-    hit = (last // period) * period >= jnp.maximum(first_transition, 1)  # unbatched: a real branch
+    hit = reinitialises(parts.cfg, t)  # unbatched: a real branch
     return jax.lax.cond(
         hit, lambda a: parts.agent.init(key, parts.obs_example, a.hparams), lambda a: a, agent_state
     )
@@ -158,7 +174,7 @@ def act_and_step(parts: MemberParts, state: RunState, t):
     key, act_key, random_key, env_key, update_key, reinit_key = jax.random.split(state.key, 6)
     num_envs, agent = parts.cfg.num_envs, parts.agent
     first_transition = t * num_envs
-    agent_state = maybe_reinitialise(parts, state.agent, first_transition, reinit_key)
+    agent_state = maybe_reinitialise(parts, state.agent, t, reinit_key)
     policy_action = agent.act(act_key, agent_state, state.obs, "train")
     random_action = agent.random_action(random_key, parts.actors)
     warm_env = first_transition + jnp.arange(num_envs) < parts.cfg.warmup_steps

@@ -57,6 +57,9 @@ class ScenarioKind:
     figure: str = ""
     # The agent slots an explanation can follow (--slot); 0: one agent, no slot to choose.
     slots_explained: int = 0
+    # Whether vector_step reads the run's length (cfg.total_steps): if not, runs of any length share
+    # one compiled chunk (xrl_jax.train.chunk.get_trainer).
+    steps_read_run_length: bool = False
 
     # ---- envs ------------------------------------------------------------------------------------
     def make_envs(self, cfg: TrainConfig) -> tuple[Any, Any, Any]:
@@ -82,6 +85,11 @@ class ScenarioKind:
     def vector_step(self, parts: MemberParts, state: RunState, t):
         """One vector step of the member's envs: ``(state, outputs)``."""
         return single_agent_step(parts, state, t)
+
+    def initial_owed_updates(self):
+        """The run state's count of gradient steps owed at the start (``RunState.owed_updates``):
+        None for kinds that pay every step's updates in that step."""
+        return None
 
     def chunk_metrics(self, outs, metrics: dict, average) -> None:
         """Add the kind's own metrics of a chunk to ``metrics`` from the vector steps' ``outs``

@@ -1,0 +1,91 @@
+"""How many XLA devices a CPU host is split into, so that a run uses every core by default.
+
+XLA's CPU backend runs most element-wise kernels of one device on one thread, so a run on one CPU
+device leaves the other cores mostly idle. Split into several host devices, the members of a run
+(seeds x sweep points) spread over them as over GPUs (:func:`~xrl_jax.train.chunk.mesh_devices`),
+each device running its block of members on its own core. The rule and the measurements it rests
+on: docs/performance.md, "Every core by default".
+
+The split must be chosen before JAX starts its backend (``jax_num_cpu_devices``); the count a run
+used is written into its config (``num_devices``), so that a resume splits the host the same way and
+its members keep their numbers bit for bit.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+import jax
+
+from xrl_jax.config import TrainConfig
+
+HOST_DEVICE_FLAG = "xla_force_host_platform_device_count"
+
+
+def cpu_cores() -> int:
+    """The cores this process may run on (its CPU affinity, e.g. a container's or a job's share)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+def members_at_once(cfg: TrainConfig) -> int:
+    """The members one program trains together: all of them, or ``max_group_size`` at most (the
+    memory planner may still make the groups smaller on a small machine)."""
+    if cfg.max_group_size:
+        return min(cfg.num_members, cfg.max_group_size)
+    return cfg.num_members
+
+
+def auto_cpu_devices(cfg: TrainConfig, cores: int) -> int:
+    """The CPU devices for ``cfg`` on ``cores`` cores (:func:`devices_for_members`)."""
+    return devices_for_members(members_at_once(cfg), cores)
+
+
+def devices_for_members(members: int, cores: int) -> int:
+    """One device per core, as many as ``members`` trained together fill evenly (a device of padding
+    repeats a member's work: it would cost a core's time for nothing), never more than the members."""
+    return max(d for d in range(1, min(max(cores, 1), max(members, 1)) + 1) if members % d == 0)
+
+
+def flagged_host_devices() -> int | None:
+    """The host device count ``XLA_FLAGS`` sets (``--xla_force_host_platform_device_count``), if any."""
+    found = re.search(rf"--{HOST_DEVICE_FLAG}=(\d+)", os.environ.get("XLA_FLAGS", ""))
+    return int(found.group(1)) if found else None
+
+
+# The devices of a split host meet in a chunk's two collectives (xrl_jax.train.chunk). XLA aborts the
+# process when one device reaches a collective 40 s after another (and warns after 20 s), which a
+# loaded machine or members of unequal work per device can cause, although nothing is lost in one
+# process; so the wait is a day, and its warnings come after an hour.
+PATIENT_COLLECTIVES = {
+    "xla_cpu_collective_call_terminate_timeout_seconds": 86_400,
+    "xla_cpu_collective_call_warn_stuck_timeout_seconds": 3_600,
+}
+
+
+def split_cpu_host(count: int) -> bool:
+    """Ask JAX for ``count`` CPU devices (it makes them when its backend starts; on a machine with an
+    accelerator the CPU devices go unused), with patient collectives. Returns False when that is no
+    longer possible (the backend has started) or the user's ``XLA_FLAGS`` chose a count already,
+    which then stands."""
+    flagged = flagged_host_devices()
+    if max(count, flagged or 0) > 1:
+        patient_collectives()
+    if flagged is not None:
+        return False
+    try:
+        jax.config.update("jax_num_cpu_devices", int(count))
+    except RuntimeError:  # the backend runs already: its devices are what they are
+        return False
+    return True
+
+
+def patient_collectives() -> None:
+    """Add :data:`PATIENT_COLLECTIVES` to ``XLA_FLAGS`` where the user set none of them (XLA reads
+    the variable when its backend starts)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    extra = [f"--{name}={value}" for name, value in PATIENT_COLLECTIVES.items() if name not in flags]
+    os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
