@@ -10,6 +10,7 @@ import pytest
 from network_support import action_size
 
 import xrl_jax
+from envs.intersection import CURRICULUM, CURRICULUM_PROBS
 from xrl_jax.agents import make_agent
 from xrl_jax.benchmarks import occupancy
 from xrl_jax.config import preset
@@ -31,8 +32,21 @@ def test_the_measured_table_is_complete_and_consistent():
             int(values.max()),
         )
     assert table["tracking"]["histogram"][-1] == table["tracking"]["observations"]  # always full
-    assert 0.3 < table["intersection"]["mean"] < 0.7 and 20 < table["country_road"]["mean"] < 40
-    assert 1.0 < table["intersection"]["acting_vehicles_per_env_step"] < 8.0
+    assert 20 < table["country_road"]["mean"] < 40
+    intersection, random = table["intersection"], table["intersection"]["random_actions"]
+    # Drivers that keep their cars on the road see more of the others than random ones, which leave
+    # the road within seconds (docs/performance.md, "How full the sets are").
+    assert 1.0 < intersection["mean"] < 2.0 and 0.2 < random["mean"] < 0.6
+    assert intersection["weightings"]["per_observation"] == pytest.approx(intersection["mean"], abs=1e-3)
+    # Acting vehicles per env step: at most the caps' curriculum mean, 32/15, reached when every
+    # episode stays full; the random drivers' 8-car episodes are not.
+    full = sum(cap * p for cap, p in zip(CURRICULUM, CURRICULUM_PROBS, strict=True))
+    assert full == pytest.approx(32 / 15)
+    for entry in (intersection, random):
+        acting = entry["acting_vehicles_per_env_step"]
+        assert 1.5 < acting <= full
+        assert all(0 < v["acting_vehicles_per_env_step"] <= int(cap) for cap, v in entry["by_cap"].items())
+    assert random["acting_vehicles_per_env_step"] < intersection["acting_vehicles_per_env_step"]
 
 
 def test_the_table_ships_inside_the_package():
@@ -85,15 +99,58 @@ def test_update_cost_counts_the_packed_update_and_its_fallback():
     assert cost["packed"] is None and cost["expected"] == cost["dense"]
 
 
-def test_intersection_rollout_keeps_the_observations_of_vehicles_that_acted():
-    out = occupancy.rollout_observations("intersection", num_envs=2, steps=40)
+def test_stored_counts_weigh_each_acting_vehicle_once():
+    """Two env steps of 2 envs with 3 vehicle slots of 4 rows: the trainer stores one observation per
+    slot that acted, so the mean it learns from weighs a crowded step by its vehicles; counted by hand.
+    Slots that did not act hold rows (a removed car's last view) that must not count."""
+    present = np.zeros((2, 2, 3, 4), bool)
+    acted = np.zeros((2, 2, 3), bool)
+    present[0, 0, 0, :2] = present[0, 0, 1, :2] = present[0, 0, 2, 0] = True  # 3 cars see 2, 2, 1
+    acted[0, 0] = True
+    acted[0, 1, 0] = True  # a lone car; slot 1 did not act but holds 3 rows
+    present[0, 1, 1, :3] = True
+    present[1, 0, 0, 0] = True  # nobody acted in env 0 at step 1
+    present[1, 1, 0, 0] = present[1, 1, 1, 0] = True  # 2 cars see each other
+    acted[1, 1, :2] = True
+    np.testing.assert_array_equal(occupancy.stored_counts(present, acted), [2, 2, 1, 0, 1, 1])
+    weightings = occupancy.occupancy_weightings(present, acted)
+    assert weightings["per_observation"] == pytest.approx(7 / 6)  # 7 others in 6 stored observations
+    assert weightings["per_env_step"] == pytest.approx((5 / 3 + 0 + 2 / 2) / 3)  # 3 steps with a car
+    assert weightings["per_slot"] == pytest.approx(7 / 12)  # over all 2 x 2 x 3 slots
+    with pytest.raises(ValueError, match="disagree on the slots"):
+        occupancy.stored_counts(present, acted[..., :2])
+
+
+def test_curriculum_envs_take_the_curriculums_shares():
+    envs_at = occupancy.curriculum_envs(30)
+    assert envs_at == {1: 16, 2: 8, 4: 4, 8: 2}
+    shares = np.asarray(list(envs_at.values())) / 30
+    np.testing.assert_allclose(shares, CURRICULUM_PROBS, rtol=1e-12)  # p ∝ 1/n, exact fractions
+    for bad in (0, 16):
+        with pytest.raises(ValueError, match="multiple of 15"):
+            occupancy.curriculum_envs(bad)
+
+
+@pytest.mark.parametrize("policy", ["scripted", "random"])
+def test_intersection_rollout_keeps_the_observations_of_vehicles_that_acted(policy):
+    out = occupancy.rollout_observations("intersection", num_envs=15, steps=40, policy=policy)
     objects = out["observations"]["vehicles_set"]
     assert objects.shape[1:] == (8, 7) and out["observations"]["state"].shape == (objects.shape[0], 66)
-    assert 0 < objects.shape[0] <= 2 * 40 * 8
-    assert objects.shape[0] == round(out["acting_vehicles_per_env_step"] * 2 * 40)
+    # 8 envs of 1 car, 4 of 2, 2 of 4, 1 of 8: at most 32 acting per env step
+    assert 0 < objects.shape[0] <= 40 * 32
+    assert objects.shape[0] == round(out["acting_vehicles_per_env_step"] * 15 * 40)
     summary = occupancy.summarise("intersection", out)
     assert sum(summary["histogram"]) == objects.shape[0] and summary["max"] <= 7
+    assert summary["by_cap"]["1"]["mean"] == 0.0  # a lone car sees nobody
+    assert summary["weightings"]["per_observation"] == pytest.approx(summary["mean"], abs=1e-3)
+
+
+def test_rollout_settings_are_checked():
     with pytest.raises(ValueError, match="unknown setting"):
         occupancy.rollout_observations("intersection", num_tracks=3)
     with pytest.raises(ValueError, match="unknown scenario"):
         occupancy.rollout_observations("highway")
+    with pytest.raises(ValueError, match="unknown policy 'trained'"):
+        occupancy.rollout_observations("intersection", num_envs=15, steps=2, policy="trained")
+    with pytest.raises(ValueError, match="multiple of 15"):
+        occupancy.rollout_observations("intersection", num_envs=2, steps=2)

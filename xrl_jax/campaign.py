@@ -181,7 +181,10 @@ def plan(
         # A member updates after each step past the warm-up.
         updates = max(cfg.total_steps - cfg.warmup_steps, 0) * cfg.num_members
         updates_left = sum(max(cfg.total_steps - max(step, cfg.warmup_steps), 0) for step in done)
-        # On the Intersection one update per acting vehicle: as many as measured per env step.
+        # On the Intersection one update per acting vehicle: as many as measured per env step under
+        # the scripted driver, which stands for training (after the warm-up a learning policy keeps
+        # its cars on the road as it does; random drivers lose theirs sooner and act less):
+        # set_occupancy.json keeps both, docs/performance.md "How full the sets are" says why.
         per_step = scenario_kind(cfg).updates_per_env_step(cfg, occupancy)
         total, left = flops * per_step * updates, flops * per_step * updates_left
         rows.append(

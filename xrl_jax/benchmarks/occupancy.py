@@ -7,9 +7,16 @@ docs/performance.md describes and records what the observations held:
 * Country Road and Tracking: the hand controller of docs/carenv-single-agent.md §8.3 at 8 m/s, one
   episode of up to 600 steps on each of ``num_tracks`` generated tracks, every step's observation
   until the episode ends;
-* Intersection: the training curriculum (1, 2, 4 or 8 vehicles per episode) with uniformly random
-  actions, ``num_envs`` envs for ``steps`` steps; every observation of a vehicle that acted (the
-  ones the trainer stores and learns from), and how many vehicles acted per env step.
+* Intersection: the training curriculum (1, 2, 4 or 8 vehicles per episode) with its draws replaced
+  by their expected shares (:func:`curriculum_envs`: 8 : 4 : 2 : 1 envs at each cap, p ∝ 1/n), each
+  env ``steps`` steps (its 60 s restarts included); every observation of a vehicle that acted (the
+  ones the trainer stores and learns from, :func:`stored_counts`), and how many vehicles acted per
+  env step. Two drivers: the scripted one of :mod:`envs.intersection_driver` (``policy="scripted"``,
+  the table's figures: after its 2,000 warm-up steps the trainer stores what a learning policy drives,
+  and such a policy keeps its cars on the road and near each other, as the scripted one does) and
+  uniformly random actions (``policy="random"``: the warm-up's, recorded beside them). Random drivers
+  leave the road or collide within seconds, so their sets hold about a quarter as many vehicles
+  (docs/performance.md, "How full the sets are").
 
 :func:`rollout_observations` returns the observations themselves (the update benchmarks sample
 their batches from them); :func:`summarise` turns them into the table that ``set_occupancy.json``
@@ -34,6 +41,8 @@ import numpy as np
 
 import envs
 from envs import hand_controller
+from envs.intersection import CURRICULUM
+from envs.intersection_driver import scripted_actions
 from xrl_jax import config
 from xrl_jax.agents import make_agent
 from xrl_jax.benchmarks.timing import update_flops
@@ -47,7 +56,11 @@ SET_KEYS = {name: config.scenario(name).set_key for name in SCENARIOS}
 DEFAULTS = {
     "tracking": {"num_tracks": 32, "steps": 600, "seed": 0},
     "country_road": {"num_tracks": 32, "steps": 600, "seed": 0},
-    "intersection": {"num_envs": 16, "steps": 1200, "seed": 0},
+    "intersection": {"num_envs": 60, "steps": 1200, "seed": 0, "policy": "scripted"},
+}
+INTERSECTION_POLICIES = {
+    "scripted": "scripted driver (envs/intersection_driver.py) under the training curriculum",
+    "random": "uniformly random actions under the training curriculum",
 }
 
 
@@ -82,8 +95,50 @@ def _racing_observations(scenario: str, num_tracks: int, steps: int, seed: int) 
     return {"observations": observations, "policy": policy}
 
 
-def _intersection_observations(num_envs: int, steps: int, seed: int) -> dict[str, Any]:
-    env, params = envs.make("intersection")  # the training curriculum
+def curriculum_envs(num_envs: int) -> dict[int, int]:
+    """Envs per vehicle cap in the curriculum's proportions (p ∝ 1/n: 8 : 4 : 2 : 1 of every 15), so
+    that pooling their env steps weights each cap as the curriculum's draws do on average, without
+    the draws' noise: 3,000 training steps of 2 envs draw only 6 caps."""
+    shares = {cap: max(CURRICULUM) // cap for cap in CURRICULUM}
+    unit, rest = divmod(num_envs, sum(shares.values()))
+    if rest or unit < 1:
+        raise ValueError(
+            f"num_envs must be a positive multiple of {sum(shares.values())} (envs at caps "
+            f"{', '.join(f'{cap}: {share}' for cap, share in shares.items())}), got {num_envs}"
+        )
+    return {cap: unit * share for cap, share in shares.items()}
+
+
+def stored_counts(present: np.ndarray, acted: np.ndarray) -> np.ndarray:
+    """Present objects in each observation the trainer stores: one per slot that acted in an env
+    step (its observation before the step), none for an empty slot. ``present`` (..., slots, rows)
+    and ``acted`` (..., slots), boolean; returns (stored observations,) int, in order."""
+    present, acted = np.asarray(present, bool), np.asarray(acted, bool)
+    if present.shape[:-1] != acted.shape:
+        raise ValueError(f"present {present.shape} and acted {acted.shape} disagree on the slots")
+    return present.sum(-1)[acted]
+
+
+def occupancy_weightings(present: np.ndarray, acted: np.ndarray) -> dict[str, float]:
+    """Mean present objects per set, three ways (``present`` (steps, envs, slots, rows), ``acted``
+    (steps, envs, slots)): ``per_observation`` over the observations the trainer stores (what a
+    batch's sets hold: the packed rows follow it), ``per_env_step`` over env steps with an acting
+    vehicle, each the mean of its acting vehicles (a crowded step counts once, not once per vehicle),
+    and ``per_slot`` over every slot of every env step, empty slots counting 0."""
+    counts = np.asarray(present, bool).sum(-1)
+    acted = np.asarray(acted, bool)
+    acting, others = acted.sum(-1), np.where(acted, counts, 0).sum(-1)
+    steps = acting > 0
+    return {
+        "per_observation": float(stored_counts(present, acted).mean()),
+        "per_env_step": float((others[steps] / acting[steps]).mean()),
+        "per_slot": float(others.sum() / acted.size),
+    }
+
+
+def _drive_intersection(env, params, num_envs: int, steps: int, key, policy: str):
+    """``num_envs`` envs of ``params`` driven by ``policy`` for ``steps`` steps: every step's
+    observations before the step (steps, envs, slots, ...) and which slots acted (steps, envs, slots)."""
 
     def rollout(key):
         reset_key, key = jax.random.split(key)
@@ -92,9 +147,12 @@ def _intersection_observations(num_envs: int, steps: int, seed: int) -> dict[str
         def step(carry, key):
             obs, state = carry
             act_key, step_key = jax.random.split(key)
-            action = jax.vmap(env.sample_actions, in_axes=(0, None))(
-                jax.random.split(act_key, num_envs), params
-            )
+            if policy == "scripted":
+                action = jax.vmap(scripted_actions, in_axes=(0, None))(obs, params)
+            else:
+                action = jax.vmap(env.sample_actions, in_axes=(0, None))(
+                    jax.random.split(act_key, num_envs), params
+                )
             next_obs, state, *_, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
                 jax.random.split(step_key, num_envs), state, action, params
             )
@@ -102,14 +160,33 @@ def _intersection_observations(num_envs: int, steps: int, seed: int) -> dict[str
 
         return jax.lax.scan(step, (obs, state), jax.random.split(key, steps))[1]
 
-    obs, acted = jax.device_get(jax.jit(rollout)(jax.random.PRNGKey(seed)))
-    acted = np.asarray(acted)  # (steps, envs, slots)
-    flat = acted.reshape(-1)
-    observations = {k: np.asarray(v).reshape(-1, *v.shape[3:])[flat] for k, v in obs.items()}
+    obs, acted = jax.device_get(jax.jit(rollout)(key))
+    return obs, np.asarray(acted)
+
+
+def _intersection_observations(num_envs: int, steps: int, seed: int, policy: str) -> dict[str, Any]:
+    if policy not in INTERSECTION_POLICIES:
+        raise ValueError(f"unknown policy {policy!r}; valid: {', '.join(INTERSECTION_POLICIES)}")
+    env, params = envs.make("intersection")  # continuous actions: the scripted driver's
+    kept, present, acted, by_cap = [], [], [], {}
+    for cap, count in curriculum_envs(num_envs).items():
+        key = jax.random.fold_in(jax.random.PRNGKey(seed), cap)
+        obs, cap_acted = _drive_intersection(env, params.replace(max_vehicles=cap), count, steps, key, policy)
+        kept.append({k: np.asarray(v)[cap_acted] for k, v in obs.items()})
+        present.append(np.asarray(obs["vehicles_set"])[..., 0] > 0)
+        acted.append(cap_acted)
+        by_cap[str(cap)] = {
+            "acting_vehicles_per_env_step": round(float(cap_acted.sum() / (steps * count)), 3),
+            "mean": round(occupancy_weightings(present[-1], cap_acted)["per_observation"], 3),
+        }
+    # The caps' envs side by side: one env step of the curriculum's mix.
+    present, acted = np.concatenate(present, axis=1), np.concatenate(acted, axis=1)
     return {
-        "observations": observations,
-        "policy": "uniformly random actions under the training curriculum",
+        "observations": {k: np.concatenate([part[k] for part in kept]) for k in kept[0]},
+        "policy": INTERSECTION_POLICIES[policy],
         "acting_vehicles_per_env_step": float(acted.sum() / (steps * num_envs)),
+        "weightings": {k: round(v, 3) for k, v in occupancy_weightings(present, acted).items()},
+        "by_cap": by_cap,
     }
 
 
@@ -121,7 +198,7 @@ ROLLOUTS = {
 }
 
 
-def rollout_observations(scenario: str, **settings: int) -> dict[str, Any]:
+def rollout_observations(scenario: str, **settings: int | str) -> dict[str, Any]:
     """Real observations of ``scenario`` (the protocol of the module doc; ``settings`` override
     :data:`DEFAULTS`): ``{"observations": {key: (M, ...)}, "policy": str, ...}``."""
     if scenario not in SCENARIOS:
@@ -158,13 +235,28 @@ def summarise(scenario: str, rollout: dict[str, Any]) -> dict[str, Any]:
     }
     if "acting_vehicles_per_env_step" in rollout:
         summary["acting_vehicles_per_env_step"] = round(rollout["acting_vehicles_per_env_step"], 3)
+    for key in ("weightings", "by_cap"):  # the Intersection's
+        if key in rollout:
+            summary[key] = rollout[key]
     return summary
 
 
 def measure_occupancy(path: str | Path = OCCUPANCY_FILE) -> dict[str, dict[str, Any]]:
     """Drive every scenario as this module describes and write the table to ``path`` (one line per
-    scenario, so that a re-measurement reads as a small diff)."""
+    scenario, so that a re-measurement reads as a small diff). The Intersection's entry is the
+    scripted driver's; the random drivers' is kept under its ``random_actions``."""
     table = {scenario: summarise(scenario, rollout_observations(scenario)) for scenario in SCENARIOS}
+    random = summarise("intersection", rollout_observations("intersection", policy="random"))
+    kept = (
+        "policy",
+        "observations",
+        "histogram",
+        "mean",
+        "acting_vehicles_per_env_step",
+        "weightings",
+        "by_cap",
+    )
+    table["intersection"]["random_actions"] = {k: random[k] for k in kept}
     lines = [f"  {json.dumps(k)}: {json.dumps(v, ensure_ascii=False)}" for k, v in table.items()]
     Path(path).write_text("{\n" + ",\n".join(lines) + "\n}\n")
     return table
@@ -271,16 +363,20 @@ def update_cost(agent, batch_size: int, members: int = 1, table: dict | None = N
 
 __all__ = [
     "DEFAULTS",
+    "INTERSECTION_POLICIES",
     "OCCUPANCY_FILE",
     "SCENARIOS",
+    "curriculum_envs",
     "fallback_probability",
     "load_occupancy",
     "measure_occupancy",
+    "occupancy_weightings",
     "overflow_probability",
     "packed_only",
     "present_counts",
     "rollout_observations",
     "scenario_of",
+    "stored_counts",
     "summarise",
     "update_cost",
 ]
