@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -141,6 +142,10 @@ def train_options(args: argparse.Namespace) -> list[str]:
     )
 
 
+def stop_as_if_interrupted(signum, frame):
+    raise KeyboardInterrupt
+
+
 def compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """``bench.py compare``: refuses options the working tree's ``train`` would, then times both sides
     (xrl_jax.benchmarks.compare) and prints the report."""
@@ -150,12 +155,13 @@ def compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     forwarded = train_options(args)
     check_arguments(parser, parser.parse_args(["train", *forwarded]))
     progress = lambda line: print(f"bench.py compare: {line}", file=sys.stderr, flush=True)
+    signal.signal(signal.SIGTERM, stop_as_if_interrupted)  # so that a kill, too, removes the checkout
     try:
         report = compare_trees(ROOT, args.against, args.rounds, forwarded, progress)
     except CompareError as err:
         return fail("bench.py", err, err.status)
     except KeyboardInterrupt:
-        return fail("bench.py", "interrupted (the checkout of --against is removed)", 130)
+        return fail("bench.py", "stopped (the checkout of --against is removed)", 130)
     json.dump(report, sys.stdout, indent=2)
     print()
     return 0

@@ -42,12 +42,21 @@ STDERR_LINES_QUOTED = 3
 # have a train sub-command, does that accept the options, and do its imports come from the tree? A
 # string, not a function of this module: REV need not have this module.
 PREFLIGHT = r"""
-import contextlib, importlib.util, io, json, os, pathlib, sys
+import argparse, contextlib, importlib.util, io, json, os, pathlib, sys
 train_args = json.loads(sys.argv[1])
 spec = importlib.util.spec_from_file_location("bench_preflight", os.path.join("experiments", "bench.py"))
 bench = importlib.util.module_from_spec(spec)
 sys.modules["bench_preflight"] = bench
 spec.loader.exec_module(bench)
+
+class Parsed(Exception):
+    pass
+
+original_parse_args = argparse.ArgumentParser.parse_args
+
+def parse_then_stop(self, *args, **kwargs):
+    original_parse_args(self, *args, **kwargs)
+    raise Parsed
 
 def parse(argv):
     err = io.StringIO()
@@ -58,8 +67,11 @@ def parse(argv):
                 args = parser.parse_args(argv)
                 if hasattr(bench, "check_arguments"):
                     bench.check_arguments(parser, args)
-            elif "--help" in argv:  # an older bench.py builds its parser inside main
+            else:  # an older bench.py builds its parser inside main: main stops once it has parsed
+                argparse.ArgumentParser.parse_args = parse_then_stop
                 bench.main(argv)
+    except Parsed:
+        pass
     except SystemExit as exc:
         return "" if exc.code in (0, None) else (err.getvalue().strip().splitlines() or ["?"])[-1]
     return ""
@@ -209,11 +221,13 @@ def checked_out(root: Path, sha: str, prefix: str = "") -> Iterator[Path]:
         git(root, "worktree", "add", "--detach", "--quiet", str(checkout), sha)
         yield checkout / prefix
     finally:
-        with contextlib.suppress(CompareError):
+        try:
             git(root, "worktree", "remove", "--force", str(checkout))
+        except CompareError:  # half made, or its folder gone: git forgets worktrees whose folder is gone
+            shutil.rmtree(scratch, ignore_errors=True)
+            with contextlib.suppress(CompareError):
+                git(root, "worktree", "prune")
         shutil.rmtree(scratch, ignore_errors=True)
-        with contextlib.suppress(CompareError):
-            git(root, "worktree", "prune")
 
 
 def child_environment(tree: Path) -> dict:
@@ -232,6 +246,7 @@ def preflight(tree: Path, train_args: list[str], label: str) -> None:
     if done.returncode != 0:
         raise CompareError(f"{label}: its bench.py does not load: {last_lines(done.stderr)}", 1)
     found = json.loads(done.stdout.strip().splitlines()[-1])
+    found.update({k: found[k].split("error: ", 1)[-1] for k in ("no_train", "rejects")})  # argparse's prefix
     if found["no_train"]:
         raise CompareError(f"{label}: its bench.py has no train sub-command ({found['no_train']})")
     if found["rejects"]:
@@ -254,15 +269,23 @@ def run_train(tree: Path, train_args: list[str], label: str) -> dict:
     return parse_train_report(done.stdout)
 
 
+def check_same_configurations(reports: dict[str, list[dict]]) -> None:
+    """Refuse, after the first round, sides whose runs timed different configurations (their defaults
+    differ, say): there would be nothing to pair."""
+    tree_keys, rev_keys = set(reports[TREE][0]["rows"]), set(reports[REV][0]["rows"])
+    if tree_keys != rev_keys:
+        only = sorted(tree_keys ^ rev_keys, key=str)
+        raise CompareError(
+            f"the sides timed different configurations {KEY_FIELDS} (set the options that differ): {only}",
+            1,
+        )
+
+
 def summarise(reports: dict[str, list[dict]]) -> list[dict]:
     """Per configuration: each side's rate per round, the work it timed where the sides differ, and
     the ratio statistics."""
-    keys = list(reports[TREE][0]["rows"])
-    if set(keys) != set(reports[REV][0]["rows"]):
-        only = sorted(set(keys) ^ set(reports[REV][0]["rows"]), key=str)
-        raise CompareError(f"the two sides timed different configurations ({KEY_FIELDS}): {only}", 1)
     results = []
-    for key in keys:
+    for key in reports[TREE][0]["rows"]:
         rates = {side: [r["rows"][key]["env_steps_per_s"] for r in reports[side]] for side in (TREE, REV)}
         first = {side: reports[side][0]["rows"][key] for side in (TREE, REV)}
         work = {f: [first[TREE].get(f), first[REV].get(f)] for f in WORK_FIELDS}
@@ -301,6 +324,8 @@ def compare(
             for side in sides:
                 progress(f"round {number}/{rounds}: {labels[side]}")
                 reports[side].append(run_train(trees[side], train_args, labels[side]))
+            if number == 1:
+                check_same_configurations(reports)
     return {
         "command": "compare",
         "train_options": train_args,
