@@ -89,12 +89,12 @@ def scratch(tmp_path, monkeypatch):
 
 
 def make_repo(path: Path, rev_bench: str | None, tree_bench: str | None = None, sub: str = "") -> Path:
-    """A repository whose one commit has ``rev_bench`` as ``sub``/experiments/bench.py (none: a README
+    """A repository whose one commit has ``rev_bench`` as ``sub``/experiments/bench.py (none: a text file
     alone); the working tree then holds ``tree_bench`` (uncommitted). Returns the project's root."""
     root = path / "repo" / sub
     root.mkdir(parents=True)
     git(path / "repo", "init", "-q")
-    (root / "README.md").write_text("a project\n", encoding="utf-8")
+    (root / "notes.txt").write_text("a project\n", encoding="utf-8")
     if rev_bench is not None:
         write_bench(root, rev_bench)
     git(path / "repo", "add", "-A")
@@ -179,6 +179,17 @@ def test_output_without_a_train_report_is_refused(text):
 def test_a_childs_last_lines_are_quoted_on_one_line():
     assert C.last_lines("a\n\nb\nc\n  d  \n") == "b | c | d"
     assert C.last_lines("") == "(nothing on standard error)"
+
+
+def test_the_rows_of_bench_train_carry_what_compare_reads():
+    """The cheap guard of the interface (the real run is the slow test below): bench_train's report
+    names every field compare pairs rows by, reads and shows."""
+    import inspect
+
+    from xrl_jax.benchmarks import updates
+
+    source = inspect.getsource(updates.bench_train)
+    assert all(f'"{field}":' in source for field in (*C.KEY_FIELDS, *C.WORK_FIELDS, "env_steps_per_s"))
 
 
 def test_the_orchestration_imports_no_jax():

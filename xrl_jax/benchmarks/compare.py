@@ -44,10 +44,10 @@ STDERR_LINES_QUOTED = 3
 PREFLIGHT = r"""
 import argparse, contextlib, importlib.util, io, json, os, pathlib, sys
 train_args = json.loads(sys.argv[1])
-spec = importlib.util.spec_from_file_location("bench_preflight", os.path.join("experiments", "bench.py"))
-bench = importlib.util.module_from_spec(spec)
+module_spec = importlib.util.spec_from_file_location("bench_preflight", "experiments/bench.py")
+bench = importlib.util.module_from_spec(module_spec)
 sys.modules["bench_preflight"] = bench
-spec.loader.exec_module(bench)
+module_spec.loader.exec_module(bench)
 
 class Parsed(Exception):
     pass
