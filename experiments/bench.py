@@ -155,13 +155,15 @@ def compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     forwarded = train_options(args)
     check_arguments(parser, parser.parse_args(["train", *forwarded]))
     progress = lambda line: print(f"bench.py compare: {line}", file=sys.stderr, flush=True)
-    signal.signal(signal.SIGTERM, stop_as_if_interrupted)  # so that a kill, too, removes the checkout
+    before = signal.signal(signal.SIGTERM, stop_as_if_interrupted)  # a kill, too, removes the checkout
     try:
         report = compare_trees(ROOT, args.against, args.rounds, forwarded, progress)
     except CompareError as err:
         return fail("bench.py", err, err.status)
     except KeyboardInterrupt:
         return fail("bench.py", "stopped (the checkout of --against is removed)", 130)
+    finally:
+        signal.signal(signal.SIGTERM, before)
     json.dump(report, sys.stdout, indent=2)
     print()
     return 0
