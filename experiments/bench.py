@@ -8,12 +8,19 @@
     python experiments/bench.py train    [--env tracking] [--algos xsac xdsac] [--seeds 1 5 20]
                                          [--widths 256 64] [--chunks 2] [--set KEY=VALUE ...]
                                          [--devices 1 2]  (members spread over that many devices)
+    python experiments/bench.py compare  --against REV [--rounds 3] [train's options ...]
     python experiments/bench.py tracks   [--seeds 1 4 20] [--count 64]
 
 Numbers are wall-clock rates after compilation (compile time is reported separately), measured with
 ``block_until_ready`` on the default JAX device (``train --devices``: on that many devices; on a
 CPU-only machine the host is split into that many XLA devices). Tests never assert timings; these
 scripts do.
+
+``compare`` times ``train`` in this working tree (uncommitted changes included) and in REV (a commit,
+checked out as a detached git worktree in a temporary folder, removed at the end), each run a fresh
+process with the same options (train options left out: each side's own defaults), the order alternating
+each round (AB, BA, AB, ...); it prints each configuration's rates per round, the per-round ratios
+(working tree / REV), their median, min-max and an interval for the median (xrl_jax.benchmarks.compare).
 """
 
 from __future__ import annotations
@@ -21,14 +28,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, positive_int
+from cli_args import OneLineParser, fail, positive_int
 
 from xrl_jax.config import PRESETS
 
+ROOT = Path(__file__).resolve().parents[1]  # the working tree that `compare` times against another commit
 # What `bench.py env` drives with one random action per env (envs.registry's single-agent names).
 RACING_SCENARIOS = ("tracking", "country_road", "tracking_discrete", "country_road_discrete")
 
@@ -72,20 +81,14 @@ def build_parser() -> argparse.ArgumentParser:
     tr_parser = sub.add_parser(
         "train", help="end-to-end training env-steps/s (updates included), compile, memory"
     )
-    tr_parser.add_argument("--env", default="tracking", choices=["tracking", "country_road", "intersection"])
-    tr_parser.add_argument(
-        "--algos", nargs="+", default=["xsac", "xdsac"], choices=["sac", "dsac", "xsac", "xdsac"]
+    add_train_arguments(tr_parser)
+    cmp_parser = sub.add_parser(
+        "compare", help="train's env-steps/s of the working tree over another commit's, runs in turn"
     )
-    tr_parser.add_argument("--seeds", nargs="+", type=positive_int, default=[1, 5, 20])
-    tr_parser.add_argument(
-        "--widths", nargs="+", type=positive_int, default=[256, 64], help="actor/critic widths (paper: 256)"
-    )
-    tr_parser.add_argument("--chunks", type=positive_int, default=2, help="timed chunks after the first")
-    tr_parser.add_argument(
-        "--devices", nargs="+", type=positive_int, default=[1], help="device counts to spread the seeds over"
-    )
-    tr_parser.add_argument("--preset", default="paper", choices=PRESETS)
-    tr_parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra config overrides")
+    cmp_parser.add_argument("--against", required=True, metavar="REV", help="the commit to compare with")
+    cmp_parser.add_argument("--rounds", type=positive_int, default=3, help="runs per side, order alternating")
+    for action in add_train_arguments(cmp_parser):  # passed on as given: unset, each side's own default
+        action.default = argparse.SUPPRESS
     tk_parser = sub.add_parser("tracks", help="fresh-track refill cost per track, FLOPs per track")
     tk_parser.add_argument("--seeds", nargs="+", type=positive_int, default=[1, 4, 20])
     tk_parser.add_argument(
@@ -93,6 +96,77 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tk_parser.add_argument("--repeats", type=positive_int, default=3)
     return parser
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    """``train``'s options, which ``compare`` passes on to both sides."""
+    return [
+        parser.add_argument(
+            "--env", default="tracking", choices=["tracking", "country_road", "intersection"]
+        ),
+        parser.add_argument(
+            "--algos", nargs="+", default=["xsac", "xdsac"], choices=["sac", "dsac", "xsac", "xdsac"]
+        ),
+        parser.add_argument("--seeds", nargs="+", type=positive_int, default=[1, 5, 20]),
+        parser.add_argument(
+            "--widths",
+            nargs="+",
+            type=positive_int,
+            default=[256, 64],
+            help="actor/critic widths (paper: 256)",
+        ),
+        parser.add_argument("--chunks", type=positive_int, default=2, help="timed chunks after the first"),
+        parser.add_argument(
+            "--devices",
+            nargs="+",
+            type=positive_int,
+            default=[1],
+            help="device counts to spread the seeds over",
+        ),
+        parser.add_argument("--preset", default="paper", choices=PRESETS),
+        parser.add_argument(
+            "--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra config overrides"
+        ),
+    ]
+
+
+def train_options(args: argparse.Namespace) -> list[str]:
+    """The ``train`` options a ``compare`` request gave, as command-line words for both sides."""
+    from xrl_jax.benchmarks.compare import render_options
+
+    given = add_train_arguments(argparse.ArgumentParser())
+    return render_options(
+        (action.option_strings[0], getattr(args, action.dest))
+        for action in given
+        if hasattr(args, action.dest)
+    )
+
+
+def stop_as_if_interrupted(signum, frame):
+    raise KeyboardInterrupt
+
+
+def compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """``bench.py compare``: refuses options the working tree's ``train`` would, then times both sides
+    (xrl_jax.benchmarks.compare) and prints the report."""
+    from xrl_jax.benchmarks.compare import CompareError
+    from xrl_jax.benchmarks.compare import compare as compare_trees
+
+    forwarded = train_options(args)
+    check_arguments(parser, parser.parse_args(["train", *forwarded]))
+    progress = lambda line: print(f"bench.py compare: {line}", file=sys.stderr, flush=True)
+    before = signal.signal(signal.SIGTERM, stop_as_if_interrupted)  # a kill, too, removes the checkout
+    try:
+        report = compare_trees(ROOT, args.against, args.rounds, forwarded, progress)
+    except CompareError as err:
+        return fail("bench.py", err, err.status)
+    except KeyboardInterrupt:
+        return fail("bench.py", "stopped (the checkout of --against is removed)", 130)
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    json.dump(report, sys.stdout, indent=2)
+    print()
+    return 0
 
 
 def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -107,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     check_arguments(parser, args)
+    if args.command == "compare":  # before jax: the runs are other processes
+        return compare(parser, args)
     if args.command == "train" and max(args.devices) > 1:
         # A CPU host becomes that many XLA devices (read when the backend starts, i.e. below).
         flags = os.environ.get("XLA_FLAGS", "")

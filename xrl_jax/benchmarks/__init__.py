@@ -7,22 +7,33 @@ timings, these do. docs/benchmarks.md holds the measured numbers.
   machine), the matmul ceiling, XLA's FLOP count, peak memory;
 * :mod:`.rollouts`: env steps per second, the fresh-track feed's cost;
 * :mod:`.updates`: gradient updates per second, end-to-end training steps per second;
-* :mod:`.table_one`: parameter counts and inference FLOPs on Country Road shapes.
+* :mod:`.table_one`: parameter counts and inference FLOPs on Country Road shapes;
+* :mod:`.compare`: two versions' ``bench.py train`` side by side, in turn, in processes of their own.
 """
 
-from xrl_jax.benchmarks.rollouts import bench_env, bench_intersection, bench_tracks
-from xrl_jax.benchmarks.table_one import format_table_one, measure_table_one
-from xrl_jax.benchmarks.timing import bench_matmul, machine_info
-from xrl_jax.benchmarks.updates import bench_train, bench_update
+import importlib
 
-__all__ = [
-    "bench_env",
-    "bench_intersection",
-    "bench_matmul",
-    "bench_tracks",
-    "bench_train",
-    "bench_update",
-    "format_table_one",
-    "machine_info",
-    "measure_table_one",
-]
+# Loaded on first use, so that ``xrl_jax.benchmarks.compare`` (bench.py compare, which only starts
+# other processes) imports no jax: on a GPU host a parent holding the device takes its children's memory.
+_EXPORTS = {
+    "bench_env": "rollouts",
+    "bench_intersection": "rollouts",
+    "bench_tracks": "rollouts",
+    "format_table_one": "table_one",
+    "measure_table_one": "table_one",
+    "bench_matmul": "timing",
+    "machine_info": "timing",
+    "bench_train": "updates",
+    "bench_update": "updates",
+}
+
+
+def __getattr__(name):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f"xrl_jax.benchmarks.{_EXPORTS[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'xrl_jax.benchmarks' has no attribute {name!r}")
+
+
+__all__ = sorted(_EXPORTS)
