@@ -40,7 +40,8 @@ from xrl_jax.runs.folder import (
 )
 from xrl_jax.runs.plots import plot_learning_curve, plot_sweep
 from xrl_jax.runs.provenance import config_document
-from xrl_jax.runs.summary import summarize_run
+from xrl_jax.runs.references import measured_yardstick
+from xrl_jax.runs.summary import summarize_run, training_curve
 from xrl_jax.train import hosts
 from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, member_hparams
 from xrl_jax.train.clock import RunClock
@@ -158,7 +159,8 @@ def _summarise(out: Path, cfg: TrainConfig, timing: dict, plan: dict, unverified
         paths = run_paths(out)
         write_atomic(paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
         if summary["curve"] or summary.get("sweep"):
-            plot_learning_curve(summary, paths["curve"])
+            reference, training = measured_yardstick(cfg), training_curve(out, cfg)
+            plot_learning_curve(summary, paths["curve"], reference=reference, training=training)
         if summary.get("sweep"):
             plot_sweep(summary, paths["sweep"])
     return summary
