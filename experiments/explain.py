@@ -1,12 +1,15 @@
 """Draw a trained policy's explanations over one evaluation episode: ``python experiments/explain.py``.
 
-    python experiments/explain.py --run RESULTS_DIR [--seed i] [--episode j] [--step k] [--slot s] --out FILE
+    python experiments/explain.py --run RESULTS_DIR [--seed i] [--episode j] [--step k] [--slot s]
+        [--format png|gif|mp4 | --out FILE]
 
 The agent of seed ``i`` is restored from the run's newest checkpoint and drives evaluation track
 ``j`` (the fixed tracks of the run's evaluations) in its evaluation mode; the episode is one
-compiled ``lax.scan``. ``--out`` decides what is written: ``.png`` the frame of step ``k``,
-``.gif`` / ``.mp4`` the whole episode. The per-step attributions (every object's weight and world
-position) go to JSON lines next to it. See ``xrl_jax/explain/figures.py`` for how to read a figure.
+compiled ``lax.scan``. The format decides what is written: ``png`` the frame of step ``k``, ``gif`` /
+``mp4`` the whole episode, by default into the run's folder (``RESULTS_DIR/explain/seed<i>_episode<j>
+_step<k>.png``, ``.../seed<i>_episode<j>.gif``), or into ``--out FILE`` (its suffix the format). The
+per-step attributions (every object's weight and world position) go to JSON lines next to it. See
+``xrl_jax/explain/figures.py`` for how to read a figure.
 
 Intersection runs replay evaluation episode ``j`` (8 vehicles, the evaluation's traffic), every
 car driven by the agent; the figure follows vehicle slot ``s`` (default: the first slot holding a
@@ -82,12 +85,21 @@ def build_parser() -> argparse.ArgumentParser:
         "--episode", type=non_negative_int, default=0, help="evaluation track index (default 0)"
     )
     parser.add_argument("--step", type=non_negative_int, default=0, help="step drawn into a .png (default 0)")
-    parser.add_argument("--out", required=True, metavar="FILE", help="output: .png (one step), .gif or .mp4")
+    output = parser.add_mutually_exclusive_group()
+    output.add_argument(
+        "--format",
+        choices=[suffix[1:] for suffix in FORMATS],
+        default=None,
+        help="png (one step), gif or mp4 (the episode), written into RESULTS_DIR/explain/ (default png)",
+    )
+    output.add_argument(
+        "--out", metavar="FILE", default=None, help="write here instead: .png (one step), .gif or .mp4"
+    )
     parser.add_argument(
         "--attributions",
         default=None,
         metavar="FILE",
-        help="JSON-lines attributions (default: <out without suffix>.attributions.jsonl)",
+        help="JSON-lines attributions (default: <figure without suffix>.attributions.jsonl)",
     )
     parser.add_argument("--key", type=non_negative_int, default=0, help="PRNG key of the episode (default 0)")
     parser.add_argument(
@@ -131,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         return fail(PROG, problem)
     args = build_parser().parse_args(argv)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else default_out(args)
     suffix = out.suffix.lower()
     if suffix not in FORMATS:
         return fail(
@@ -143,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
 
         if shutil.which("ffmpeg") is None:
             return fail(PROG, "writing .mp4 needs the ffmpeg program on PATH; install it or use .gif")
-    if not out.parent.exists():
+    if args.out and not out.parent.exists():
         return fail(PROG, f"the folder of --out {out} does not exist")
     if args.width < 16 or args.height < 16:
         return fail(PROG, f"frame size must be at least 16x16 pixels, got {args.width}x{args.height}")
@@ -151,19 +163,39 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.attributions) if args.attributions else out.with_name(out.stem + ".attributions.jsonl")
     )
     from xrl_jax.explain.run_figures import ExplainError, FigureRequest, explain_run
-    from xrl_jax.runs.folder import RunFolderError
+    from xrl_jax.runs.folder import RunFolderError, run_paths
 
     fields = ("seed", "point", "episode", "step", "key", "threshold", "max_steps", "width", "height", "fps",
               "mirrored", "slot", "all_slots")  # fmt: skip
     request = FigureRequest(
         Path(args.run), out, attributions, **{name: getattr(args, name) for name in fields}
     )
+    # The run's explain/ folder, made only in a run folder (else explain_run says what is wrong) and
+    # taken away again when nothing was drawn into it.
+    made = not args.out and run_paths(request.run)["config"].is_file() and not out.parent.exists()
+    if made:
+        out.parent.mkdir()
     try:
         written = explain_run(request, note=lambda message: print(f"{PROG}: {message}", file=sys.stderr))
     except (ExplainError, RunFolderError) as err:
+        if made and not any(out.parent.iterdir()):
+            out.parent.rmdir()
         return fail(PROG, err)
     print(written)
     return 0
+
+
+def default_out(args: argparse.Namespace) -> Path:
+    """The figure's default file, in the run's folder: ``explain/seed<i>_episode<j>_step<k>.png`` (a
+    sweep's point and an Intersection's slot named too when given; a video has no step)."""
+    from xrl_jax.runs.folder import run_paths
+
+    parts = [f"point{args.point}"] if args.point else []
+    parts += [f"seed{args.seed}", f"episode{args.episode}"]
+    parts += [f"slot{args.slot}"] if args.slot is not None else []
+    fmt = args.format or "png"
+    parts += [f"step{args.step}"] if fmt == "png" else []
+    return run_paths(Path(args.run))["explain"] / f"{'_'.join(parts)}.{fmt}"
 
 
 if __name__ == "__main__":

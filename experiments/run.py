@@ -88,8 +88,8 @@ stopping and failures:
   to resume. Exit status: 0 done, 1 a failure the message explains (full disk, no usable checkpoint,
   a lost process), 2 bad input (also a job that did not assemble), 3 a seed diverged (a non-finite
   loss or parameter: the run stops at once, naming the seed, the step and the quantity, and keeps
-  the last good checkpoint), 130/143 stopped by SIGINT/SIGTERM. Right after the first chunk with
-  updates the run prints its estimated duration.
+  the last good checkpoint), 130/143 stopped by SIGINT/SIGTERM. Right after the second chunk with
+  updates the run prints its estimated duration; the progress bar shows the time left.
 
 environment: XRL_JAX_CACHE_DIR (default ~/.cache/xrl-jax) caches generated tracks and compiled code.
 """

@@ -92,6 +92,35 @@ def test_png_gif_and_attributions_of_a_mixture_agent(cli, xdsac_run, tmp_path, c
     assert read_lines(attributions) == rows
 
 
+def test_by_default_the_figures_land_in_the_run_folder(cli, xdsac_run, tmp_path, capsys, monkeypatch):
+    """Without --out the figure and its attributions go to RUN/explain/, never the current folder
+    (a newcomer's run from the repository's root wrote 2.3 MB there); a request that fails leaves
+    no explain/ folder behind."""
+    import shutil
+
+    run = tmp_path / "results" / "tracking-xdsac-20260101-000000"
+    shutil.copytree(xdsac_run, run)
+    where = tmp_path / "cwd"
+    where.mkdir()
+    monkeypatch.chdir(where)
+    one_line_error(*call(cli, capsys, "--run", run, "--seed", 1)[::2], "seed 1 out of range")
+    assert not (run / "explain").exists()
+    status, out, err = call(cli, capsys, "--run", run, "--step", 2, *SMALL)
+    assert status == 0, err
+    assert out.startswith(str(run / "explain" / "seed0_episode0_step2.png"))
+    status, _, err = call(cli, capsys, "--run", run, "--format", "gif", "--episode", 1, *SMALL)
+    assert status == 0, err
+    assert sorted(p.name for p in (run / "explain").iterdir()) == [
+        "seed0_episode0_step2.attributions.jsonl", "seed0_episode0_step2.png",
+        "seed0_episode1.attributions.jsonl", "seed0_episode1.gif",
+    ]  # fmt: skip
+    assert Image.open(run / "explain" / "seed0_episode0_step2.png").size == (320, 180)
+    assert list(where.iterdir()) == []
+    one_line_error(
+        *call(cli, capsys, "--run", run, "--format", "gif", "--out", "x.gif")[::2], "--out", "--format"
+    )
+
+
 def test_baseline_shows_only_its_distribution_and_says_so(cli, tmp_path, capsys):
     run = make_run_folder(tmp_path / "dsac", "tracking", "dsac")
     status, _, err = call(cli, capsys, "--run", run, "--out", tmp_path / "b.png", *SMALL)

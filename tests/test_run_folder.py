@@ -17,7 +17,7 @@ from xrl_jax.runs.folder import (
     truncate_lines,
 )
 from xrl_jax.train import resolve_config
-from xrl_jax.train.clock import CHECKPOINT_TIME_SHARE, RunClock, cost_lines
+from xrl_jax.train.clock import CHECKPOINT_TIME_SHARE, RunClock
 
 
 def test_no_data_and_not_finite_are_different_values():
@@ -117,23 +117,6 @@ def test_time_based_checkpoints_cost_at_most_two_percent():
     clock.last_save -= 2.0
     assert clock.checkpoint_due_by_time()
     assert not RunClock(cfg.replace(checkpoint_minutes=0.0), 1).checkpoint_due_by_time()
-
-
-def test_the_estimate_scales_the_first_updating_chunk_and_warns_beyond_a_day():
-    cfg = resolve_config("tracking", "xsac", "paper", num_seeds=20)  # 500 chunks of 2,000 steps
-    clock = RunClock(cfg, num_groups=1)
-    clock.observe_chunk(0, seconds=1740.0)  # 256 warm-up transitions of 2,000: 1,744 updating
-    assert clock.chunk_s == pytest.approx(1740.0 * 2000 / 1744)
-    remaining = clock.remaining_s(0, 1)
-    assert remaining == pytest.approx(499 * clock.chunk_s)
-    lines = cost_lines(cfg, 1800.0, remaining, "cpu (2 cores: test)")
-    assert "20 seed(s) x 1,000,000 steps" in lines[0] and "days" in lines[0]
-    assert len(lines) == 2 and "--preset quick" in lines[1] and "GPU" in lines[1]
-    quick = resolve_config("tracking", "xdsac", "quick")
-    assert len(cost_lines(quick, 60.0, 600.0, "cpu")) == 1  # under a day: no warning
-    clock = RunClock(quick, num_groups=1)
-    clock.observe_chunk(0, seconds=1.0)  # the quick preset's first chunk is all warm-up
-    assert clock.chunk_s is None
 
 
 def test_sizes_read_at_any_scale():

@@ -48,6 +48,7 @@ def run_paths(out: Path) -> dict[str, Path]:
         "timing": out / "timing.jsonl",
         "trackers": out / "trackers.json",  # what the trackers of runs.trackers have received
         "tensorboard": out / "tensorboard",
+        "explain": out / "explain",  # experiments/explain.py's figures and attributions, by default
     }
 
 

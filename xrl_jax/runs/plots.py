@@ -1,5 +1,6 @@
-"""A run's figures: its learning curve and, for a sweep, the scores against the swept value (the
-paper's Fig. 8). Matplotlib without pyplot: no GUI backend, safe in threads and on servers."""
+"""A run's figures: its learning curve (with the training episodes and the scenario's yardstick
+where known) and, for a sweep, the scores against the swept value (the paper's Fig. 8). Matplotlib
+without pyplot: no GUI backend, safe in threads and on servers."""
 
 from __future__ import annotations
 
@@ -8,20 +9,44 @@ from typing import Any
 
 import numpy as np
 
+from xrl_jax.runs.references import MeasuredYardstick
 from xrl_jax.runs.summary import summary_metrics
 from xrl_jax.runs.tables import curve_label, format_value, point_label
 
+TrainingCurve = dict[str, tuple[list[int], list[float]]]  # summary.training_curve's
+REFERENCE_STYLE = {"color": "tab:red", "linestyle": "--", "linewidth": 1.2}
 
-def plot_learning_curve(summary: dict[str, Any], path: str | Path, metrics: int = 2) -> Path:
-    """Save the learning curve (IQM line, 95 % CI band, thin per-seed lines) of the first ``metrics``
-    summary metrics as one PNG panel each; returns ``path``. For a sweep, one IQM line (and a light
-    CI band) per point, labelled by its values, without per-seed lines."""
+
+def plot_learning_curve(
+    summary: dict[str, Any], path: str | Path, metrics: int = 2,
+    reference: MeasuredYardstick | None = None, training: TrainingCurve | None = None,
+) -> Path:  # fmt: skip
+    """Save :func:`learning_curve_figure` as a PNG; returns ``path``."""
+    path = Path(path)
+    learning_curve_figure(summary, metrics, reference, training).savefig(path, dpi=110)
+    return path
+
+
+def learning_curve_figure(
+    summary: dict[str, Any], metrics: int = 2, reference: MeasuredYardstick | None = None,
+    training: TrainingCurve | None = None,
+) -> Any:  # fmt: skip
+    """The learning curve of the first ``metrics`` summary metrics, one panel each (a matplotlib
+    ``Figure``): the evaluations' IQM line with its 95 % CI band and thin per-seed lines; the
+    training episodes' mean over seeds as a lighter line (``training``:
+    :func:`~xrl_jax.runs.summary.training_curve`), since evaluations are few (a quick-start run of
+    80k steps evaluates at 40k and 80k) while a metrics line comes every ``log_interval``; and the
+    scenario's yardstick as a dashed horizontal line (``reference``: a
+    :class:`~xrl_jax.runs.references.MeasuredYardstick` measured on the run's evaluation, or None).
+    For a sweep, one IQM line (and a light CI band) per point, labelled by its values, without
+    per-seed or training lines."""
     from matplotlib.figure import Figure  # no pyplot: no GUI backend, safe in threads and on servers
 
     chosen = summary_metrics(summary["env"])[:metrics]
     if summary.get("sweep"):
-        return _plot_sweep_curves(summary, Path(path), chosen)
+        return _sweep_curves_figure(summary, chosen, reference)
     curve = summary.get("curve", [])
+    training = training or {}
     figure = Figure(figsize=(4.2 * len(chosen), 3.2), layout="constrained")
     axes = figure.subplots(1, len(chosen), squeeze=False)[0]
     for ax, (key, label) in zip(axes, chosen, strict=True):
@@ -35,6 +60,11 @@ def plot_learning_curve(summary: dict[str, Any], path: str | Path, metrics: int 
                 color="tab:blue", alpha=0.25, linewidth=0, label="95 % CI",
             )  # fmt: skip
             ax.plot(steps, [p[key]["estimate"] for p in points], color="tab:blue", marker="o", label="IQM")
+        if key in training:
+            ax.plot(*training[key], color="tab:orange", alpha=0.6, linewidth=1.0,
+                    label="training episodes (seeds' mean)")  # fmt: skip
+        _draw_reference(ax, reference, key)
+        if ax.get_legend_handles_labels()[0]:
             ax.legend(loc="best", fontsize="small")
         ax.set_xlabel("environment steps per seed")
         format_step_axis(ax)
@@ -42,12 +72,16 @@ def plot_learning_curve(summary: dict[str, Any], path: str | Path, metrics: int 
         ax.grid(alpha=0.3)
     seeds = max((p[key]["n"] for p in curve for key, _ in chosen if key in p), default=0)
     figure.suptitle(f"{summary['env']} / {summary['algo']} ({summary['preset']}), {seeds} seeds")
-    path = Path(path)
-    figure.savefig(path, dpi=110)
-    return path
+    return figure
 
 
-def _plot_sweep_curves(summary: dict[str, Any], path: Path, chosen) -> Path:
+def _draw_reference(ax: Any, reference: MeasuredYardstick | None, key: str) -> None:
+    """The yardstick's score on metric ``key`` as a labelled horizontal line, where it has one."""
+    if reference is not None and key in reference.scores:
+        ax.axhline(reference.scores[key], label=reference.label(key), **REFERENCE_STYLE)
+
+
+def _sweep_curves_figure(summary: dict[str, Any], chosen, reference: MeasuredYardstick | None) -> Any:
     from matplotlib.figure import Figure
 
     points = summary["sweep"]["points"]
@@ -64,7 +98,8 @@ def _plot_sweep_curves(summary: dict[str, Any], path: Path, chosen) -> Path:
             ax.fill_between(steps, low, high, color=color, alpha=0.12, linewidth=0)
             ax.plot(steps, [p[key]["estimate"] for p in rows], color=color, marker="o", markersize=3,
                     label=point_label(point["values"]))  # fmt: skip
-        if ax.has_data():
+        _draw_reference(ax, reference, key)
+        if ax.get_legend_handles_labels()[0]:
             ax.legend(loc="best", fontsize="x-small")
         ax.set_xlabel("environment steps per seed")
         format_step_axis(ax)
@@ -72,8 +107,7 @@ def _plot_sweep_curves(summary: dict[str, Any], path: Path, chosen) -> Path:
         ax.grid(alpha=0.3)
     figure.suptitle(f"{summary['env']} / {summary['algo']} ({summary['preset']}), sweep over "
                     f"{', '.join(summary['sweep']['fields'])}")  # fmt: skip
-    figure.savefig(path, dpi=110)
-    return path
+    return figure
 
 
 def sweep_x_scale(values) -> tuple[str, float | None]:

@@ -79,6 +79,40 @@ def curve_over_seeds(evaluations: list[dict[int, dict]], env: str) -> list[dict[
     return curve
 
 
+# Per evaluation metric, the rollout metric of the metrics lines that measures the same of the training
+# episodes (each seed's last 100 finished, xrl_jax.train.episodes), on a single-agent scenario.
+TRAINING_METRICS = {
+    "avg_return": "rollout/avg_episode_return",
+    "avg_etr": "rollout/early_termination_rate",
+    "avg_episode_length": "rollout/avg_episode_length",
+}
+
+
+def training_curve(out: str | Path, cfg) -> dict[str, tuple[list[int], list[float]]]:
+    """The training episodes' curve of a plain run: per evaluation metric with a rollout counterpart
+    (:data:`TRAINING_METRICS`), ``(steps, means)``, the mean over seeds at every metrics line (every
+    ``log_interval`` steps) where all seeds have a value; a seed has none before its first episode
+    ends. Empty for a sweep (one curve per point) and a multi-agent scenario, whose training
+    episodes are one car's and whose evaluation scores the whole scene."""
+    if cfg.num_points > 1 or cfg.scenario.agent_slots > 1:
+        return {}
+    rows = [
+        {r["step"]: r for r in read_rows(metrics_file(Path(out), stem)) if "step" in r}
+        for stem in _member_stems(cfg)
+    ]
+    steps = sorted(set.intersection(*(set(by_step) for by_step in rows))) if rows else []
+    curves = {}
+    for key, rollout in TRAINING_METRICS.items():
+        points = []
+        for step in steps:
+            values = [by_step[step].get(rollout) for by_step in rows]
+            if all(isinstance(v, int | float) and np.isfinite(v) for v in values):
+                points.append((step, float(np.mean(values))))
+        if points:
+            curves[key] = ([step for step, _ in points], [value for _, value in points])
+    return curves
+
+
 # What every record says about its member (run_folder.member_fields): in a plain run "point" is 0
 # and "sweep" is {}, which the summary leaves out so that it reads as before sweeps existed.
 _SWEEP_RECORD_FIELDS = ("point", "sweep")

@@ -40,7 +40,8 @@ from xrl_jax.runs.folder import (
 )
 from xrl_jax.runs.plots import plot_learning_curve, plot_sweep
 from xrl_jax.runs.provenance import config_document
-from xrl_jax.runs.summary import summarize_run
+from xrl_jax.runs.references import measured_yardstick
+from xrl_jax.runs.summary import summarize_run, training_curve
 from xrl_jax.train import hosts
 from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, member_hparams
 from xrl_jax.train.clock import RunClock
@@ -158,7 +159,8 @@ def _summarise(out: Path, cfg: TrainConfig, timing: dict, plan: dict, unverified
         paths = run_paths(out)
         write_atomic(paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
         if summary["curve"] or summary.get("sweep"):
-            plot_learning_curve(summary, paths["curve"])
+            reference, training = measured_yardstick(cfg), training_curve(out, cfg)
+            plot_learning_curve(summary, paths["curve"], reference=reference, training=training)
         if summary.get("sweep"):
             plot_sweep(summary, paths["sweep"])
     return summary
@@ -236,6 +238,7 @@ class _HostLoop:
                 seeds = [cfg.member_point_seed(m)[1] for m in rows]
                 state = trainer.init(cfg.seed, seeds, member_hparams(cfg, trainer.agent, rows))
             self._compile(state, next_chunk)
+            self.clock.start_group()
             self.console.open(self.done_steps)
             self.clock.last_save = time.monotonic()
             for chunk_index in range(next_chunk, cfg.num_chunks):
@@ -300,6 +303,7 @@ class _HostLoop:
         cfg = self.cfg
         self._count_chunk()
         state, report, elapsed = self._train_chunk(state, chunk_index)
+        self.clock.observe_chunk(chunk_index, elapsed)
         step = cfg.chunk_end_step(chunk_index)
         metrics = self.records.metrics(step, members, self.rows, report)
         self._check_health(state, report, members, step)
@@ -311,7 +315,6 @@ class _HostLoop:
         self._account(chunk_index, members, report, elapsed)
         self.records.tell(Progress(step, self.group_index, metrics, evaluations))
         self._stop_if_asked(ckpt, state, members, chunk_index, step)
-        self.clock.observe_chunk(chunk_index, elapsed)
         self.console.estimate_once(self.clock, self.group_index, chunk_index)
         return state
 
@@ -353,8 +356,9 @@ class _HostLoop:
         eval_keys, episodes = self.trainer.evaluate(state)
         state = state.replace(eval_key=eval_keys)
         episodes = hosts.fetch_all(episodes)
-        self.clock.eval_s = time.perf_counter() - tic
-        self.timing["eval_s"] += self.clock.eval_s
+        seconds = time.perf_counter() - tic
+        self.clock.evaluated(seconds)
+        self.timing["eval_s"] += seconds
         return state, self.records.evaluations(step, members, self.rows, episodes)
 
     def _account(self, chunk_index: int, members: list[int], report: ChunkReport, elapsed: float) -> None:
@@ -364,7 +368,9 @@ class _HostLoop:
         collected = (step - (cfg.chunk_end_step(chunk_index - 1) if chunk_index else 0)) * len(members)
         self.timing["env_steps"] += collected
         self.done_steps += collected
-        self.console.advance(collected, report, self.rows, f"group {self.group_index + 1}/{len(self.groups)}")
+        where = f"group {self.group_index + 1}/{len(self.groups)}"
+        remaining = self.clock.remaining_s(self.group_index, chunk_index + 1) if self.clock.steady else None
+        self.console.advance(collected, report, self.rows, where, remaining)
         if hosts.is_primary():
             row = {"group": self.group_index, "step": step, "seconds": elapsed}
             append_lines(run_paths(self.out)["timing"], [row])
