@@ -7,7 +7,8 @@
                                          [--seeds 1 5 20] [--preset paper] [--batch-size B]
     python experiments/bench.py train    [--env tracking] [--algos xsac xdsac] [--seeds 1 5 20]
                                          [--widths 256 64] [--chunks 2] [--set KEY=VALUE ...]
-                                         [--devices 1 2]  (members spread over that many devices)
+                                         [--devices auto 1 2]  (members spread over that many devices;
+                                         auto, the default: one CPU device per core the seeds fill)
     python experiments/bench.py compare  --against REV [--rounds 3] [train's options ...]
     python experiments/bench.py tracks   [--seeds 1 4 20] [--count 64]
 
@@ -27,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import sys
 from pathlib import Path
@@ -119,9 +119,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> list[argparse.Action
         parser.add_argument(
             "--devices",
             nargs="+",
-            type=positive_int,
-            default=[1],
-            help="device counts to spread the seeds over",
+            type=device_count,
+            default=["auto"],
+            help="device counts to spread the seeds over; auto (default): on a CPU, one device per core "
+            "that the seeds fill evenly, as a run splits its host (xrl_jax.train.cpu_devices); else 1",
         ),
         parser.add_argument("--preset", default="paper", choices=PRESETS),
         parser.add_argument(
@@ -169,11 +170,27 @@ def compare(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     return 0
 
 
+def device_count(text: str) -> int | str:
+    """``--devices``: a positive integer, or ``auto``."""
+    return "auto" if text == "auto" else positive_int(text)
+
+
+def devices_for(seeds: int, devices: int | str) -> int:
+    """The devices ``seeds`` members spread over on this host (``auto``: the run's rule on a CPU)."""
+    if devices != "auto":
+        return devices
+    from xrl_jax.train import cpu_devices
+
+    return cpu_devices.devices_for_members(seeds, cpu_devices.cpu_cores())
+
+
 def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Refuse what the argument types cannot see, in one line, before anything is compiled."""
     if args.command == "intersection" and not all(n <= 8 for n in args.vehicles):
         parser.error("--vehicles must lie in 1..8")
-    if args.command == "train" and any(seeds % n for seeds in args.seeds for n in args.devices):
+    if args.command != "train":
+        return
+    if any(seeds % devices_for(seeds, n) for seeds in args.seeds for n in args.devices):
         parser.error("every --seeds value must be a multiple of every --devices value")
 
 
@@ -183,13 +200,12 @@ def main(argv: list[str] | None = None) -> int:
     check_arguments(parser, args)
     if args.command == "compare":  # before jax: the runs are other processes
         return compare(parser, args)
-    if args.command == "train" and max(args.devices) > 1:
-        # A CPU host becomes that many XLA devices (read when the backend starts, i.e. below).
-        flags = os.environ.get("XLA_FLAGS", "")
-        if "xla_force_host_platform_device_count" not in flags:
-            count = max(args.devices)
-            os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
-    # Imported once the flags are set: importing the envs may start the backend.
+    if args.command == "train":
+        # A CPU host becomes that many XLA devices (when the backend starts, i.e. below).
+        from xrl_jax.train import cpu_devices
+
+        cpu_devices.split_cpu_host(max(devices_for(seeds, n) for seeds in args.seeds for n in args.devices))
+    # Imported once the host is split: importing the envs may start the backend.
     import jax
 
     from xrl_jax import benchmarks as B
@@ -209,14 +225,20 @@ def main(argv: list[str] | None = None) -> int:
             for batch in args.batches
         ]
     elif args.command == "train":
-        if max(args.devices) > len(jax.devices()):
-            parser.error(f"--devices {max(args.devices)}: only {len(jax.devices())} device(s) here")
+        on_cpu = jax.default_backend() == "cpu"  # elsewhere auto is one accelerator
+        counts = {
+            (s, n): devices_for(s, n) if on_cpu or n != "auto" else 1
+            for s in args.seeds
+            for n in args.devices
+        }
+        if max(counts.values()) > len(jax.devices()):
+            parser.error(f"--devices {max(counts.values())}: only {len(jax.devices())} device(s) here")
         report["results"] = [
-            B.bench_train(args.env, algo, seeds, width, args.chunks, args.preset, args.set, devices)
+            B.bench_train(args.env, algo, seeds, width, args.chunks, args.preset, args.set, counts[seeds, n])
             for algo in args.algos
             for width in args.widths
             for seeds in args.seeds
-            for devices in args.devices
+            for n in args.devices
         ]
     elif args.command == "update":
         observations = rollout_observations(args.env)["observations"]

@@ -108,4 +108,10 @@ def test_the_training_curve_is_the_seeds_mean_where_all_have_a_value(tmp_path):
         (tmp_path / "metrics" / f"seed_{seed}.jsonl").write_text(text)
     curves = training_curve(tmp_path, cfg)
     assert curves == {"avg_return": ([128], [2.5]), "avg_etr": ([128, 192], [0.75, 0.25])}
-    assert training_curve(tmp_path, resolve_config("intersection", "xdsac", "smoke", num_seeds=2)) == {}
+    # The Intersection's training episodes are one car's, its evaluation scores the scene: not drawn.
+    from xrl_jax.train.kinds import scenario_kind
+
+    assert not scenario_kind(
+        resolve_config("intersection", "xdsac", "smoke")
+    ).training_episodes_like_evaluation
+    assert scenario_kind(cfg).training_episodes_like_evaluation

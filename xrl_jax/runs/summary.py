@@ -92,9 +92,9 @@ def training_curve(out: str | Path, cfg) -> dict[str, tuple[list[int], list[floa
     """The training episodes' curve of a plain run: per evaluation metric with a rollout counterpart
     (:data:`TRAINING_METRICS`), ``(steps, means)``, the mean over seeds at every metrics line (every
     ``log_interval`` steps) where all seeds have a value; a seed has none before its first episode
-    ends. Empty for a sweep (one curve per point) and a multi-agent scenario, whose training
-    episodes are one car's and whose evaluation scores the whole scene."""
-    if cfg.num_points > 1 or cfg.scenario.agent_slots > 1:
+    ends. Empty for a sweep (one curve per point). The caller knows whether the training episodes
+    score what the evaluation does (not on the Intersection: one car's against the whole scene's)."""
+    if cfg.num_points > 1:
         return {}
     rows = [
         {r["step"]: r for r in read_rows(metrics_file(Path(out), stem)) if "step" in r}

@@ -46,6 +46,7 @@ from xrl_jax.train import hosts
 from xrl_jax.train.chunk import ChunkReport, RunState, Trainer, get_trainer, member_hparams
 from xrl_jax.train.clock import RunClock
 from xrl_jax.train.console import Console
+from xrl_jax.train.kinds import scenario_kind
 from xrl_jax.train.memory import padded_members, plan_run, tree_bytes
 from xrl_jax.train.records import Progress, RecordWriter, divergence_message, expected_rows, member_name
 from xrl_jax.train.restore import config_fingerprint, restore_group
@@ -159,7 +160,9 @@ def _summarise(out: Path, cfg: TrainConfig, timing: dict, plan: dict, unverified
         paths = run_paths(out)
         write_atomic(paths["summary"], json.dumps(summary, indent=2, sort_keys=True) + "\n")
         if summary["curve"] or summary.get("sweep"):
-            reference, training = measured_yardstick(cfg), training_curve(out, cfg)
+            kind = scenario_kind(cfg)
+            training = training_curve(out, cfg) if kind.training_episodes_like_evaluation else {}
+            reference = measured_yardstick(cfg)
             plot_learning_curve(summary, paths["curve"], reference=reference, training=training)
         if summary.get("sweep"):
             plot_sweep(summary, paths["sweep"])

@@ -57,6 +57,9 @@ class ScenarioKind:
     figure: str = ""
     # The agent slots an explanation can follow (--slot); 0: one agent, no slot to choose.
     slots_explained: int = 0
+    # Whether the training episodes score what the evaluation does, so that the learning curve can
+    # draw them beside it (False on the Intersection: one car's episodes against the whole scene's).
+    training_episodes_like_evaluation: bool = True
     # Whether vector_step reads the run's length (cfg.total_steps): if not, runs of any length share
     # one compiled chunk (xrl_jax.train.chunk.get_trainer).
     steps_read_run_length: bool = False

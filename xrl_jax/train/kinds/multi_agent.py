@@ -36,6 +36,7 @@ class MultiAgent(ScenarioKind):
     pairs_figure = True
     figure = "slots"
     slots_explained = MAX_AGENTS
+    training_episodes_like_evaluation = False  # one car's episodes; the evaluation scores the scene
     steps_read_run_length = True  # the owed updates are all paid at the run's last step
 
     def make_envs(self, cfg: TrainConfig):
