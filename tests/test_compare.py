@@ -164,7 +164,13 @@ def test_the_report_is_found_after_other_output_and_rows_are_named_by_their_loop
     text = "chatter\n{not json\n" + json.dumps({"machine": {"backend": "cpu"}, "results": rows}, indent=2)
     report = C.parse_train_report(text + "\n")
     assert report["machine"] == {"backend": "cpu"}
-    assert report["rows"] == {("tracking", "xsac", 16, 5, 1): rows[0]}
+    assert report["rows"] == {("tracking", "xsac", 16, 5, 0): rows[0] | {"devices": 1}}  # one device then
+    # Several --devices values time one configuration in turn: the rows are told apart by rank, and
+    # the devices are work that a report shows where the sides differ.
+    twice = [rows[0] | {"devices": 1}, rows[0] | {"devices": 2, "env_steps_per_s": 9.0}]
+    keyed = C.parse_train_report(json.dumps({"results": twice}))["rows"]
+    assert list(keyed) == [("tracking", "xsac", 16, 5, 0), ("tracking", "xsac", 16, 5, 1)]
+    assert keyed[("tracking", "xsac", 16, 5, 1)]["devices"] == 2 and "devices" in C.WORK_FIELDS
 
 
 @pytest.mark.parametrize(
@@ -244,7 +250,7 @@ def test_sides_that_timed_different_configurations_stop_after_the_first_round(tm
     root = make_repo(tmp_path, other_width, fake_bench())
     lines = []
     with pytest.raises(
-        C.CompareError, match=r"different configurations .*'tracking', 'xsac', 16, 1, 1\)"
+        C.CompareError, match=r"different configurations .*'tracking', 'xsac', 16, 1, 0\)"
     ) as err:
         C.compare(root, "HEAD", 3, [], lines.append)
     assert err.value.status == 1 and len(lines) == 2

@@ -27,8 +27,10 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 TREE, REV = "tree", "rev"  # the working tree (as it is, uncommitted changes included) and --against
-KEY_FIELDS = ("env", "algo", "width", "seeds", "devices")  # what names one of bench.py train's rows
-WORK_FIELDS = ("num_envs", "batch_size")  # what each timed step does; reported where the sides differ
+KEY_FIELDS = ("env", "algo", "width", "seeds")  # what names one of bench.py train's rows
+# What each timed step does and where: reported where the sides differ (the devices do when each side
+# spreads its seeds as its own default says: that difference is often what is being measured).
+WORK_FIELDS = ("num_envs", "batch_size", "devices")
 INTERVAL_CONFIDENCE = 0.9
 INTERVAL_NOTE = (
     "interval: order statistics of the per-round ratios that hold the median ratio with the stated "
@@ -114,9 +116,22 @@ def render_options(options: Iterable[tuple[str, object]]) -> list[str]:
 
 
 def configuration_key(row: dict) -> tuple:
-    """One of bench.py train's rows named by its loop variables (older versions had no ``devices``:
-    one device)."""
-    return tuple(row.get(field, 1 if field == "devices" else None) for field in KEY_FIELDS)
+    """One of bench.py train's rows named by its loop variables but the devices (see
+    :data:`WORK_FIELDS`)."""
+    return tuple(row.get(field) for field in KEY_FIELDS)
+
+
+def keyed_rows(rows: list[dict]) -> dict[tuple, dict]:
+    """The rows by :func:`configuration_key`, with the row's rank among rows of the same key appended
+    (several ``--devices`` values time one configuration several times, in the same order per side).
+    Rows of older versions, which had no ``devices``, ran on one device."""
+    seen: dict[tuple, int] = {}
+    keyed = {}
+    for row in rows:
+        key = configuration_key(row)
+        seen[key] = seen.get(key, -1) + 1
+        keyed[(*key, seen[key])] = {"devices": 1} | row
+    return keyed
 
 
 def parse_train_report(text: str) -> dict:
@@ -131,7 +146,7 @@ def parse_train_report(text: str) -> dict:
             continue
         rows = report.get("results") if isinstance(report, dict) else None
         if isinstance(rows, list) and rows and all("env_steps_per_s" in row for row in rows):
-            return {"machine": report.get("machine"), "rows": {configuration_key(row): row for row in rows}}
+            return {"machine": report.get("machine"), "rows": keyed_rows(rows)}
     raise CompareError("bench.py train printed no JSON report with env_steps_per_s in every row", 1)
 
 
@@ -291,7 +306,7 @@ def summarise(reports: dict[str, list[dict]]) -> list[dict]:
         work = {f: [first[TREE].get(f), first[REV].get(f)] for f in WORK_FIELDS}
         differ = {f: pair for f, pair in work.items() if pair[0] != pair[1]}
         results.append({
-            **dict(zip(KEY_FIELDS, key, strict=True)),
+            **dict(zip(KEY_FIELDS, key[:-1], strict=True)),
             "tree_env_steps_per_s": rates[TREE],
             "rev_env_steps_per_s": rates[REV],
             **({"work_differs_tree_rev": differ} if differ else {}),
