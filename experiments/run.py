@@ -196,11 +196,12 @@ def split_cpu_host_early(argv: list[str]) -> None:
     continues, or by the rule for the members that --seeds, --sweep and --set max_group_size ask for.
     Bad or missing values are left to the full parse, which reports them; a job of several processes
     splits nothing."""
-    from xrl_jax.config import ConfigError, parse_overrides, parse_sweep
+    from xrl_jax.config import SCENARIOS, ConfigError, parse_overrides, parse_sweep, scenario
     from xrl_jax.train import cpu_devices
+    from xrl_jax.train.kinds import KINDS
 
     early = argparse.ArgumentParser(add_help=False)
-    for option in ("--seeds", "--devices", "--resume", "--coordinator", "--num-processes"):
+    for option in ("--env", "--seeds", "--devices", "--resume", "--coordinator", "--num-processes"):
         early.add_argument(option)
     early.add_argument("--sweep", action="append", default=[])
     early.add_argument("--set", action="append", default=[])
@@ -219,7 +220,9 @@ def split_cpu_host_early(argv: list[str]) -> None:
             members = int(known.seeds or 1) * points
             group = int(parse_overrides(known.set).get("max_group_size", 0))
             members = min(members, group) if group > 0 else members
-            cpu_devices.split_cpu_host(cpu_devices.devices_for_members(members, cpu_devices.cpu_cores()))
+            per_core = KINDS[scenario(known.env).kind].cpu_devices_per_core if known.env in SCENARIOS else 1
+            count = cpu_devices.devices_for_members(members, cpu_devices.cpu_cores(), per_core)
+            cpu_devices.split_cpu_host(count)
     except (ConfigError, OSError, ValueError, KeyError, TypeError, SystemExit):
         return
 

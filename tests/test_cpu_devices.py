@@ -35,6 +35,14 @@ def test_one_device_per_core_that_the_members_fill_evenly(seeds, cores, devices)
     assert cpu_devices.auto_cpu_devices(config(seeds), cores) == devices
 
 
+def test_intersection_members_get_a_device_each_up_to_two_per_core():
+    """Members sharing a device wait for each other's vehicles: the Intersection splits finer."""
+    intersection = resolve_config("intersection", "xdsac", "quick", num_seeds=4)
+    assert cpu_devices.auto_cpu_devices(intersection, 2) == 4
+    assert cpu_devices.auto_cpu_devices(intersection.replace(num_seeds=20), 2) == 4  # 4 of 5 members
+    assert cpu_devices.devices_for_members(6, 2, per_core=2) == 3
+
+
 def test_members_trained_one_group_at_a_time_are_what_is_split():
     assert cpu_devices.auto_cpu_devices(config(4, max_group_size=1), 2) == 1
     assert cpu_devices.auto_cpu_devices(config(8, max_group_size=2), 4) == 2

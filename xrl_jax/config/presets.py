@@ -71,14 +71,12 @@ TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
         log_interval=2_000, eval_interval=100_000, eval_episodes=20, checkpoint_interval=100_000,
         reinit_steps=500_001),
     # The buffer keeps every agent transition (about two per env step: docs/quick_preset_tuning.md,
-    # "Intersection: the quick protocol"). One seed at a time: members in one program update in
-    # lockstep, each step as often as the member with the most vehicles needs, and on a 2-core CPU that
-    # made seeds together slower than one after another (docs/performance.md, "Intersection: one seed
-    # at a time at the quick preset").
+    # "Intersection: the quick protocol"). Seeds together: on a CPU each gets a device of its own
+    # (xrl_jax.train.cpu_devices), 1.4-1.7x the rate of one seed after another on 2 cores
+    # (docs/performance.md, "Intersection: members in one program").
     ("quick", "multi_agent"): dict(
         total_steps=200_000, num_envs=2, warmup_steps=2_000, batch_size=128, buffer_size=600_000,
-        log_interval=1_000, eval_interval=10_000, eval_episodes=10, checkpoint_interval=10_000,
-        max_group_size=1),
+        log_interval=1_000, eval_interval=10_000, eval_episodes=10, checkpoint_interval=10_000),
     ("smoke", "multi_agent"): dict(
         total_steps=128, num_envs=2, warmup_steps=64, batch_size=16, buffer_size=512, log_interval=64,
         eval_interval=128, eval_episodes=2, checkpoint_interval=64),

@@ -5,7 +5,9 @@ Per seed (docs/algorithms.md §5, mapped to synchronous vector envs as §5.8 rec
 
 * ``num_envs`` = E envs step in lock-step as one vector env (the scenario kind's ``vector_env``,
   :mod:`xrl_jax.train.kinds`), which restarts ended episodes; every vector step collects E
-  transitions (on the Intersection, one per vehicle that acted, each followed by its update);
+  transitions (on the Intersection, one per vehicle that acted, each owed one update: a member
+  alone pays them in the same step, members vmapped together pay together and may owe a few
+  thousand for a while, :mod:`xrl_jax.train.kinds.multi_agent`);
 * the first ``warmup_steps`` transitions use uniformly random actions and trigger no update;
 * afterwards every transition is followed by one gradient step (update-to-data ratio 1): E updates
   per vector step, as a ``lax.scan`` over E sampled batches; discrete agents act uniformly at random

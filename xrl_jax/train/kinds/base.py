@@ -60,6 +60,9 @@ class ScenarioKind:
     # Whether the training episodes score what the evaluation does, so that the learning curve can
     # draw them beside it (False on the Intersection: one car's episodes against the whole scene's).
     training_episodes_like_evaluation: bool = True
+    # CPU devices per core when a run splits a CPU host (xrl_jax.train.cpu_devices): members that
+    # share a device run in lockstep, which costs where their work per step differs.
+    cpu_devices_per_core: int = 1
     # Whether vector_step reads the run's length (cfg.total_steps): if not, runs of any length share
     # one compiled chunk (xrl_jax.train.chunk.get_trainer).
     steps_read_run_length: bool = False

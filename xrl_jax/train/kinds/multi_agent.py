@@ -38,6 +38,7 @@ class MultiAgent(ScenarioKind):
     slots_explained = MAX_AGENTS
     training_episodes_like_evaluation = False  # one car's episodes; the evaluation scores the scene
     steps_read_run_length = True  # the owed updates are all paid at the run's last step
+    cpu_devices_per_core = 2  # a member per device: none waits for another's vehicles (cpu_devices)
 
     def make_envs(self, cfg: TrainConfig):
         """The curriculum for training, 8 vehicles for evaluation (docs/carenv-intersection.md §8.8)."""
