@@ -264,6 +264,8 @@ def _main(args, argv, stop) -> int:
         return fail(PROG, err)
     except DiskFullError as err:
         return fail(PROG, err, EXIT_FAILED)
+    for note in prepared.notes:
+        print(f"run.py: {note}", file=sys.stderr)
     if prepared.resume:
         stop.keep(f"the checkpoints in {prepared.out} are kept")
     return _train(args, argv, prepared, stop)

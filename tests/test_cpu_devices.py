@@ -72,8 +72,8 @@ CHILD = textwrap.dedent(
     from xrl_jax.train import cpu_devices
     cpu_devices.cpu_cores = lambda: int(sys.argv[1])
     import importlib.util
-    spec = importlib.util.spec_from_file_location("run", {run!r})
-    run = importlib.util.module_from_spec(spec); sys.modules["run"] = run; spec.loader.exec_module(run)
+    found = importlib.util.spec_from_file_location("run", {run!r})
+    run = importlib.util.module_from_spec(found); sys.modules["run"] = run; found.loader.exec_module(run)
     status = run.main(sys.argv[2:])
     import jax
     print(json.dumps({{"status": status, "devices": len(jax.devices())}}))

@@ -73,13 +73,15 @@ class RunRequest:
 @dataclass(frozen=True)
 class PreparedRun:
     """A run ready to train: its configuration, its folder (created, and writable), whether it
-    continues the folder's run, and the --baseline run's summary (None without one)."""
+    continues the folder's run, the --baseline run's summary (None without one), and lines the user
+    should read before it starts."""
 
     cfg: TrainConfig
     out: Path
     resume: bool
     baseline: dict | None
     trackers: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
 
 
 class LostProcessError(RuntimeError):
@@ -172,14 +174,23 @@ def _baseline(request: RunRequest, cfg: TrainConfig) -> tuple[dict | None, str |
     return baseline, None
 
 
-def _split_cpu_host(cfg: TrainConfig, new_run: bool) -> TrainConfig:
+def _split_cpu_host(cfg: TrainConfig, new_run: bool, notes: list[str]) -> TrainConfig:
     """Split a CPU host into XLA devices before JAX's backend starts (:mod:`~xrl_jax.train.cpu_devices`):
     as many as the run's ``num_devices`` (given, or stored by the run a resume continues), or, for a
     new run of one process that leaves it at 0, as many as the measured rule gives. A new run on a
     CPU writes the count it got into its config, so that its resumes split the host alike; an older
     run's 0 keeps the devices it had; on an accelerator the run spreads over all of them as before."""
     if cfg.num_devices:
-        cpu_devices.split_cpu_host(cfg.num_devices)
+        if cpu_devices.split_cpu_host(cfg.num_devices) or new_run or jax.default_backend() != "cpu":
+            return cfg
+        have = len(jax.local_devices())
+        if have < cfg.num_devices:  # a resume in a process whose backend runs already (a notebook)
+            notes.append(
+                f"the run was split over {cfg.num_devices} CPU devices and this process has {have} "
+                f"(its JAX backend had started): it continues on {have}, whose numbers may differ from "
+                "an uninterrupted run's in the last bits"
+            )
+            return cfg.replace(num_devices=have)
         return cfg
     if not new_run or jax.distributed.is_initialized():
         return cfg
@@ -249,14 +260,15 @@ def prepare_run(request: RunRequest, results_root: Path) -> PreparedRun:
     else:
         cfg = requested_config(request)
     check_trackers(request.trackers)
-    cfg = _split_cpu_host(cfg, new_run=request.resume is None)
+    notes: list[str] = []
+    cfg = _split_cpu_host(cfg, request.resume is None, notes)
     baseline, problem = _baseline(request, cfg)
     problem = _devices_problem(cfg) or problem
     if problem:  # before anything is written
         raise ConfigError(problem)
     if request.resume is None:
         out = _new_folder(request, cfg, results_root)
-    return PreparedRun(cfg, out, request.resume is not None, baseline, tuple(request.trackers))
+    return PreparedRun(cfg, out, request.resume is not None, baseline, tuple(request.trackers), tuple(notes))
 
 
 def train_prepared(run: PreparedRun, **train_options: Any) -> dict[str, Any] | None:
