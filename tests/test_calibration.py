@@ -164,6 +164,7 @@ def test_a_real_calibration_is_cached_and_a_run_tells_its_cost_before_its_first_
         )
         assert record["vector_step_s"] == pytest.approx(record["measured"]["updating_vector_step_s"])
         assert record["eval_s"] > 0 and record["setup_s"] > 0 and record["devices"] == 1
+        assert record["others_cpu_share"] is None or 0.0 <= record["others_cpu_share"] <= 1.0
         assert C.load_calibration(C.calibration_key(cfg, 1, 1)) == record
         lines = []
         train(cfg, tmp_path / "run", progress=False, log=lines.append, stop_after_chunks=1)
@@ -175,3 +176,25 @@ def test_a_real_calibration_is_cached_and_a_run_tells_its_cost_before_its_first_
         lines.clear()
         train(cfg, tmp_path / "other", progress=False, log=lines.append, stop_after_chunks=1)
         assert not any("calibration" in line for line in lines)
+
+
+def test_a_calibration_in_a_child_process_that_fails_says_why_in_one_line():
+    """The child knows only the built-in scenarios: a user's env registered here is unknown there."""
+    from xrl_jax.benchmarks.calibration import CalibrationError, calibrate_in_child
+
+    with fast_env_registered() as env:
+        cfg = resolve_config(env, "dsac", "smoke")
+    with pytest.raises(CalibrationError, match="fast"):
+        calibrate_in_child(cfg, 1, 1)
+
+
+@pytest.mark.slow  # a child process compiles the Intersection's smoke chunk (~30 s)
+def test_a_calibration_in_a_child_process_splits_its_host_as_asked(tmp_path, monkeypatch):
+    from xrl_jax.benchmarks.calibration import calibrate_in_child
+
+    monkeypatch.setenv("XRL_JAX_CACHE_DIR", str(tmp_path))
+    cfg = resolve_config("intersection", "dsac", "smoke", num_seeds=2)
+    record = calibrate_in_child(cfg, 1, 2)
+    assert record["devices"] == record["devices_in_process"] == 2 and record["note"] == ""
+    assert record["vector_step_s"] > record["warmup_vector_step_s"] > 0
+    assert not (tmp_path / "calibrations").exists()  # the caller stores it, under its own key

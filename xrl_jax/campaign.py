@@ -175,35 +175,16 @@ class _Planned:
         return [min(self.done[m] for m in group) if left else 0 for group in self.memory["groups"]]
 
 
-def planned_devices(cfg, new_run: bool) -> int:
-    """The devices a run of ``cfg`` spreads over, as ``run.py`` would start it on this machine (its
-    ``num_devices``; on a CPU host a new run's split by the member rule, a started one's as the
-    user's XLA_FLAGS split it, else one), but no more than this process has."""
-    import jax
-
-    from xrl_jax.train import cpu_devices
-
-    available = len(jax.local_devices())
-    if cfg.num_devices:
-        wanted = cfg.num_devices
-    elif jax.default_backend() != "cpu":
-        wanted = available
-    else:
-        flagged = cpu_devices.flagged_host_devices()
-        rule = cpu_devices.auto_cpu_devices(cfg, cpu_devices.cpu_cores()) if new_run else 1
-        wanted = flagged or rule
-    return min(wanted, available)
-
-
 def _prepare(run: PlannedRun, out: Path, preset: str, seeds: int, sets: tuple[str, ...]) -> _Planned:
     from xrl_jax.runs.folder import read_run_config
     from xrl_jax.train import get_trainer, plan_memory
+    from xrl_jax.train.calibrations import run_devices
     from xrl_jax.train.chunk import mesh_devices
 
     status = run_status(out / run.name)
     # A started run resumes as it was started: neither --preset, --seeds nor --set reach it.
     cfg = new_run_config(run, preset, seeds, sets) if status == "new" else read_run_config(out / run.name)
-    devices = planned_devices(cfg, status == "new")
+    devices = run_devices(cfg, new_run=status == "new")
     trainer = get_trainer(cfg, devices=mesh_devices(devices))
     memory = plan_memory(trainer, cfg)
     if status == "started":
@@ -321,10 +302,15 @@ def calibrated_rates(prepared: list[_Planned], calibrate: Callable, say: Callabl
         except (CalibrationError, OSError) as err:
             say(f"calibrating {names} failed ({err}); its CPU hours come from the FLOP model")
             continue
+        record = dict(record, calibration_s=time.perf_counter() - tic)  # as long as the plan waited
         calibrations.store_calibration(key, record)
+        others = record.get("others_cpu_share") or 0.0
+        busy = (
+            f"; other processes took {others:.0%} of the CPUs meanwhile: slow rates" if others > 0.2 else ""
+        )
         say(
             f"calibrated {names} ({first.members_per_device} member(s) per device on {first.devices} "
-            f"device(s)) in {time.perf_counter() - tic:.0f} s ({index + 1}/{len(missing)})"
+            f"device(s)) in {record['calibration_s']:.0f} s ({index + 1}/{len(missing)}){busy}"
         )
         found.update({p.run.name: (record, "measured") for p in group})
     return found

@@ -32,12 +32,14 @@ from typing import Any
 import jax
 import numpy as np
 
-from xrl_jax.config import TrainConfig
+from xrl_jax.config import ConfigError, TrainConfig
 from xrl_jax.train import calibrations, cpu_devices
 
 VECTOR_STEPS = 8  # per calibration chunk: a paper-preset step of 20 members takes seconds
-MIN_TIMED_S = 3.0  # updating chunks are timed until this much has been measured ...
-MAX_UPDATING_CHUNKS = 40  # ... or this many chunks have run (the first untimed)
+# Updating chunks are timed until their median can be trusted: MIN_TIMED_S measured over 3 chunks at
+# least (or LONG_TIMED_S over fewer, when a chunk takes that long) ...
+MIN_TIMED_S, LONG_TIMED_S = 3.0, 30.0
+MAX_UPDATING_CHUNKS = 40  # ... or until this many chunks have run (the first untimed)
 
 
 class CalibrationError(RuntimeError):
@@ -95,14 +97,15 @@ def calibrate(cfg: TrainConfig, members_per_device: int, devices: int) -> dict[s
     warm = [run(c)[0] for c in range(warmup_chunks(cfg))][1:]
     index = warmup_chunks(cfg)
     _, updates_before = run(index)  # the first updating chunk: first-time costs
-    timed, updates = [], updates_before
-    while index + 1 < warmup_chunks(cfg) + MAX_UPDATING_CHUNKS and (not timed or sum(timed) < MIN_TIMED_S):
+    timed, updates, others = [], updates_before, OtherLoad()
+    while index + 1 < warmup_chunks(cfg) + MAX_UPDATING_CHUNKS and not _enough(timed):
         index += 1
         seconds, updates = run(index)
         timed.append(seconds)
+    others_share = others.share()
     _, eval_s = _seconds(lambda: evaluate(state))
-    warmup_step_s = sum(warm) / (len(warm) * steps)
-    updating_step_s = sum(timed) / (len(timed) * steps)
+    warmup_step_s = float(np.median(warm)) / steps
+    updating_step_s = float(np.median(timed)) / steps
     updates_per_step = (updates - updates_before) / (len(timed) * steps)
     if updates_per_step <= 0:
         raise CalibrationError(f"{cfg.env} {cfg.algo}: the calibration's chunks made no update")
@@ -133,8 +136,38 @@ def calibrate(cfg: TrainConfig, members_per_device: int, devices: int) -> dict[s
         "note": note,
         "calibration_s": time.perf_counter() - began,
         "load_average": [load, os.getloadavg()[0]],  # before and after: a busy machine measures slow
+        "others_cpu_share": others_share,  # of the machine's CPU time, by other processes while timed
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
+
+
+def _enough(timed: list[float]) -> bool:
+    return sum(timed) >= MIN_TIMED_S and (len(timed) >= 3 or sum(timed) >= LONG_TIMED_S)
+
+
+class OtherLoad:
+    """The share of the machine's CPU time that other processes take from now on (Linux's
+    ``/proc/stat`` less this process's own time): a calibration beside other work measures slow."""
+
+    def __init__(self):
+        self.start = self._sample()
+
+    @staticmethod
+    def _sample() -> tuple[float, float, float] | None:
+        try:
+            fields = [float(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+        except (OSError, ValueError):
+            return None
+        idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)  # idle and waiting for I/O
+        own = os.times()
+        return sum(fields) - idle, sum(fields), (own.user + own.system) * os.sysconf("SC_CLK_TCK")
+
+    def share(self) -> float | None:
+        end = self._sample()
+        if self.start is None or end is None or end[1] <= self.start[1]:
+            return None
+        busy, total, own = (b - a for a, b in zip(self.start, end, strict=True))
+        return min(max((busy - own) / total, 0.0), 1.0)
 
 
 def _seconds(fn):
@@ -161,7 +194,7 @@ def calibrate_in_child(cfg: TrainConfig, members_per_device: int, devices: int) 
         sys.executable, "-m", "xrl_jax.benchmarks.calibration", "--config", json.dumps(cfg.to_dict()),
         "--members-per-device", str(members_per_device), "--devices", str(devices),
     ]  # fmt: skip
-    done = subprocess.run(command, capture_output=True, text=True, env=env)
+    done = subprocess.run(command, capture_output=True, text=True, env=env, cwd=root)
     if done.returncode != 0:
         lines = (done.stderr or done.stdout).strip().splitlines() or [f"exit status {done.returncode}"]
         raise CalibrationError(lines[-1])
@@ -176,10 +209,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--devices", type=int, required=True)
     args = parser.parse_args(argv)
     cpu_devices.split_cpu_host(args.devices)
-    cfg = TrainConfig.from_dict(json.loads(args.config))
     try:
+        cfg = TrainConfig.from_dict(json.loads(args.config))
         record = calibrate(cfg, args.members_per_device, args.devices)
-    except CalibrationError as err:
+    except (CalibrationError, ConfigError) as err:
         print(err, file=sys.stderr)
         return 1
     print(json.dumps(record, sort_keys=True))

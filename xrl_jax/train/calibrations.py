@@ -31,7 +31,13 @@ from xrl_jax.config.user_envs import user_env_record
 from xrl_jax.resources import cpu_model
 from xrl_jax.runs.folder import write_atomic
 from xrl_jax.tracks import cache_dir
-from xrl_jax.train.cpu_devices import HOST_DEVICE_FLAG, PATIENT_COLLECTIVES, cpu_cores
+from xrl_jax.train.cpu_devices import (
+    HOST_DEVICE_FLAG,
+    PATIENT_COLLECTIVES,
+    auto_cpu_devices,
+    cpu_cores,
+    flagged_host_devices,
+)
 
 FORMAT = 1  # of a calibration file; another one is a foreign file
 # TrainConfig fields that change what a run computes or for how long, not what one vector step costs:
@@ -174,6 +180,22 @@ def cached_calibrations(machine: dict[str, Any] | None = None) -> list[dict[str,
 
 # What an estimate reads of a record (the rest says how it was measured).
 RECORD_RATES = ("warmup_vector_step_s", "vector_step_s", "eval_s", "setup_s")
+
+
+def run_devices(cfg: TrainConfig, new_run: bool) -> int:
+    """The devices a run of ``cfg`` spreads over, as ``run.py`` would start it on this machine (its
+    ``num_devices``; on a CPU host a new run's split by the member rule, a started one's as the
+    user's XLA_FLAGS split it, else one), but no more than this process has."""
+    available = len(jax.local_devices())
+    if cfg.num_devices:
+        wanted = cfg.num_devices
+    elif jax.default_backend() != "cpu":
+        wanted = available
+    else:
+        flagged = flagged_host_devices()
+        rule = auto_cpu_devices(cfg, cpu_cores()) if new_run else 1
+        wanted = flagged or rule
+    return min(wanted, available)
 
 
 def members_per_device(groups: list[list[int]], devices: int) -> int:
