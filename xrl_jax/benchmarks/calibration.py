@@ -4,8 +4,9 @@ evaluation. ``paper.py --dry-run`` counts its CPU hours with them, and a run who
 cached tells its cost before its first chunk (:mod:`xrl_jax.train.calibrations` keeps them).
 
 The trainer is built for a short copy of the configuration (:func:`calibration_config`): chunks of
-:data:`VECTOR_STEPS` vector steps, a small buffer, a warm-up of a few chunks that fills a batch, a
-run long enough never to end inside the measurement. The warm-up chunks after the first give a
+:data:`VECTOR_STEPS` vector steps, a buffer that holds the calibration, a warm-up of
+:data:`WARMUP_TRANSITIONS` (batches drawn from many episodes, as in a long run), a run long enough
+never to end inside the measurement. The warm-up chunks after the first give a
 vector step's cost without updates (acting and the envs); the updating chunks after the first
 (which carries first-time costs) give it with them, and so the cost of one update. A run's updating
 vector step is the first plus its updates per vector step at that cost: one per transition on the
@@ -36,6 +37,12 @@ from xrl_jax.config import ConfigError, TrainConfig
 from xrl_jax.train import calibrations, cpu_devices
 
 VECTOR_STEPS = 8  # per calibration chunk: a paper-preset step of 20 members takes seconds
+# Transitions per member of the warm-up: enough episodes that a batch is drawn as in a long run's
+# buffer. Country Road's packed per-object layers fall back to every slot when a batch holds more
+# cones than they reserve; with a batch's worth of warm-up (4 tracks) 68 % of the updates of 4 members
+# did, with ~19 random-action episodes of its ~430 steps 0.08 % (docs/performance.md, "Estimates
+# that hold"). Warm-up steps are cheap: acting and the envs.
+WARMUP_TRANSITIONS = 8192
 # Updating chunks are timed until their median can be trusted: MIN_TIMED_S measured over 3 chunks at
 # least (or LONG_TIMED_S over fewer, when a chunk takes that long) ...
 MIN_TIMED_S, LONG_TIMED_S = 3.0, 30.0
@@ -47,9 +54,9 @@ class CalibrationError(RuntimeError):
 
 
 def warmup_chunks(cfg: TrainConfig) -> int:
-    """Warm-up chunks of the calibration: two at least (the first carries first-time costs), and
-    enough to fill one batch before the first update."""
-    return max(2, -(-cfg.batch_size // (VECTOR_STEPS * cfg.num_envs)))
+    """Warm-up chunks of the calibration: :data:`WARMUP_TRANSITIONS` per member (and a batch at
+    least), in two chunks at least (the first carries first-time costs)."""
+    return max(2, -(-max(cfg.batch_size, WARMUP_TRANSITIONS) // (VECTOR_STEPS * cfg.num_envs)))
 
 
 def calibration_config(cfg: TrainConfig, members_per_device: int, devices: int) -> TrainConfig:
@@ -103,7 +110,8 @@ def calibrate(cfg: TrainConfig, members_per_device: int, devices: int) -> dict[s
         seconds, updates = run(index)
         timed.append(seconds)
     others_share = others.share()
-    _, eval_s = _seconds(lambda: evaluate(state))
+    (_, episodes), eval_s = _seconds(lambda: evaluate(state))
+    longest, limit = _longest_episode(episodes), _episode_limit(trainer, cfg)
     warmup_step_s = float(np.median(warm)) / steps
     updating_step_s = float(np.median(timed)) / steps
     updates_per_step = (updates - updates_before) / (len(timed) * steps)
@@ -119,7 +127,9 @@ def calibrate(cfg: TrainConfig, members_per_device: int, devices: int) -> dict[s
     return {
         "warmup_vector_step_s": warmup_step_s,
         "vector_step_s": warmup_step_s + update_s * run_updates,
-        "eval_s": eval_s,
+        # A racing evaluation runs until its longest episode ends: a new agent's soon, a trained
+        # one's at the time limit (a third of the quick Country Road XDSAC's episodes got there).
+        "eval_s": eval_s * (limit / longest if longest and limit and longest < limit else 1.0),
         "setup_s": setup_s,
         "update_s": update_s,
         "updates_per_vector_step": run_updates,
@@ -129,6 +139,8 @@ def calibrate(cfg: TrainConfig, members_per_device: int, devices: int) -> dict[s
             "vector_steps_timed": len(timed) * steps,
             "warmup_vector_steps_timed": len(warm) * steps,
             "eval_episodes": cfg.eval_episodes,
+            "eval_s": eval_s,
+            "eval_longest_episode": longest,
         },
         "members_per_device": members_per_device,
         "devices": used,
@@ -139,6 +151,23 @@ def calibrate(cfg: TrainConfig, members_per_device: int, devices: int) -> dict[s
         "others_cpu_share": others_share,  # of the machine's CPU time, by other processes while timed
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
+
+
+def _longest_episode(episodes) -> int | None:
+    """The steps the evaluation ran, where its episodes end early (a ``length`` per episode)."""
+    if not isinstance(episodes, dict) or "length" not in episodes:
+        return None  # the Intersection's episodes run their fixed length
+    return int(np.max(np.asarray(episodes["length"])))
+
+
+def _episode_limit(trainer, cfg: TrainConfig) -> int | None:
+    """The steps an evaluation episode runs at most (the racing envs' time limit, a user's env's)."""
+    from xrl_jax.config.user_envs import user_env_record
+
+    limit = getattr(trainer.eval_params, "max_steps", None)
+    if limit is None:
+        limit = (user_env_record(cfg.env) or {}).get("max_episode_steps")
+    return int(limit) if limit else None
 
 
 def _enough(timed: list[float]) -> bool:
