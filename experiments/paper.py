@@ -12,8 +12,12 @@ DIR/report. ``--dry-run`` prints the plan instead: every run, its
 members, the memory per member and the groups on this machine's devices, the FLOPs per update as
 it runs (XLA's cost analysis of the packed per-object layers, weighted with the measured chance
 that a batch holds too many objects for them; beside it the every-slot count; docs/performance.md)
-and the device-hours they take at a stated throughput, each for what would run (a started or finished
-run's own config.json; a new one's preset, --seeds and --set).
+and the hours they take, each for what would run (a started or finished run's own config.json; a
+new one's preset, --seeds and --set): on this machine by its calibrations (seconds per vector step
+and per evaluation, measured for each configuration and its members per device, and cached in
+XRL_JAX_CACHE_DIR; the missing ones are measured first, a minute or more each), or with
+--no-calibrate by the FLOP model (the updates' FLOPs at a measured CPU rate); on an H100 by the FLOP
+model at --utilisation.
 """
 
 from __future__ import annotations
@@ -78,6 +82,12 @@ def build_parser() -> argparse.ArgumentParser:
         "they drive every evaluation episode)",
     )
     parser.add_argument(
+        "--no-calibrate",
+        action="store_true",
+        help="--dry-run: count CPU hours with the FLOP model instead of this machine's calibrations "
+        "(measuring the missing ones takes a minute or more each)",
+    )
+    parser.add_argument(
         "--utilisation",
         type=float,
         default=0.25,
@@ -104,15 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         return fail(PROG, err)
     out = Path(args.out)
     if args.dry_run:
-        from xrl_jax.runs.folder import RunFolderError  # imports jax: not before --help
-
-        try:
-            rows = plan(runs, out, args.preset, args.seeds, args.utilisation, tuple(args.set))
-        except RunFolderError as err:  # a started run's config.json unreadable: say which, not a trace
-            return fail(PROG, err)
-        for line in format_plan(rows, args.utilisation):
-            print(line)
-        return 0
+        return dry_run(args, runs, out)
     import run as run_cli
 
     settings = CampaignSettings(args.preset, args.seeds, tuple(args.set), controller=not args.no_controller)
@@ -125,6 +127,30 @@ def main(argv: list[str] | None = None) -> int:
         show=print,
         again=continue_command(argv),
     )
+
+
+def dry_run(args: argparse.Namespace, runs: list, out: Path) -> int:
+    """Print the plan (:func:`~xrl_jax.campaign.plan`), measuring the missing calibrations each in a
+    fresh process split as its run would be, unless --no-calibrate."""
+    from xrl_jax.train import cpu_devices  # imports jax: not before --help
+
+    # Before JAX's backend starts: as many CPU devices as any run would use (each uses its own count
+    # of them for its memory plan).
+    cpu_devices.split_cpu_host(cpu_devices.cpu_cores())
+    from xrl_jax.benchmarks import calibration
+    from xrl_jax.runs.folder import RunFolderError
+
+    try:
+        rows = plan(
+            runs, out, args.preset, args.seeds, args.utilisation, tuple(args.set),
+            calibrate=None if args.no_calibrate else calibration.calibrate_in_child,
+            say=lambda message: print(f"{PROG}: {message}", file=sys.stderr),
+        )  # fmt: skip
+    except RunFolderError as err:  # a started run's config.json unreadable: say which, not a trace
+        return fail(PROG, err)
+    for line in format_plan(rows, args.utilisation):
+        print(line)
+    return 0
 
 
 if __name__ == "__main__":

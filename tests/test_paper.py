@@ -2,6 +2,7 @@
 The whole campaign at the smoke preset is a slow test (15 runs)."""
 
 import json
+import os
 import shlex
 import shutil
 
@@ -25,17 +26,85 @@ def test_the_campaign_holds_every_figure_of_the_paper(paper):
 
 def test_dry_run_prints_the_plan_and_writes_nothing(paper, capsys, tmp_path):
     out = tmp_path / "campaign"
-    args = ["--out", str(out), "--dry-run", "--preset", "smoke", "--only", "tracking-d*"]
+    args = ["--out", str(out), "--dry-run", "--no-calibrate", "--preset", "smoke", "--only", "tracking-d*"]
     status, text, _ = call(paper, capsys, *args)
     assert status == 0 and not out.exists()
     (row,) = [line.split() for line in text.splitlines() if line.startswith("tracking-")]
     assert row[:6] == ["tracking-dsac", "Fig.", "6", "new", "0%", "20"]  # members: the default 20 seeds
-    assert float(row[-3]) > 0 and "H100 hours at 25% of 67 TFLOP/s" in text  # GFLOP per update
+    assert float(row[-5]) > 0 and "H100 hours at 25% of 67 TFLOP/s" in text  # GFLOP per update
+    assert row[-2] == "FLOP" and "1 by FLOP model" in text  # --no-calibrate: the FLOP model, labelled
     # Patterns match whole names: the Country Road pair of Fig. 5 without the kappa sweep.
-    args = ["--out", str(out), "--dry-run", "--preset", "smoke", "--only", "country_road-*dsac"]
+    args = [
+        "--out",
+        str(out),
+        "--dry-run",
+        "--no-calibrate",
+        "--preset",
+        "smoke",
+        "--only",
+        "country_road-*dsac",
+    ]
     status, text, _ = call(paper, capsys, *args)
     names = [line.split()[0] for line in text.splitlines() if line.startswith("country_road-")]
     assert status == 0 and names == ["country_road-dsac", "country_road-xdsac"]
+
+
+FAKE_RATES = {"warmup_vector_step_s": 36.0, "vector_step_s": 360.0, "eval_s": 3600.0, "setup_s": 36000.0}
+
+
+def test_dry_run_counts_cpu_hours_by_this_machines_calibrations(paper, capsys, tmp_path, monkeypatch):
+    """A configuration without a calibration is measured first (here by a stand-in that trains
+    nothing), then cached; --no-calibrate keeps the FLOP model; each row says where its hours come from."""
+    from xrl_jax.benchmarks import calibration
+    from xrl_jax.benchmarks.calibration import CalibrationError
+    from xrl_jax.train.calibrations import cache_folder
+
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))  # the dry run may add to it
+    shutil.rmtree(cache_folder(), ignore_errors=True)
+    asked = []
+
+    def measure(cfg, members_per_device, devices):
+        asked.append((cfg.env, cfg.algo, cfg.num_members, members_per_device, devices))
+        return dict(FAKE_RATES, created="2026-01-02T03:04:05")
+
+    monkeypatch.setattr(calibration, "calibrate_in_child", measure)
+    dry = ["--dry-run", "--preset", "smoke", "--seeds", "2", "--only", "tracking-dsac"]
+    args = ["--out", str(tmp_path / "c"), *dry]
+    rows, errs = [], []
+    for _ in range(2):
+        status, text, err = call(paper, capsys, *args)
+        assert status == 0, err
+        rows += [line.split() for line in text.splitlines() if line.startswith("tracking-dsac")]
+        errs.append(err)
+    assert "1 configuration(s) have no calibration on this machine; measuring them takes ~" in errs[0]
+    assert "calibrated tracking-dsac (" in errs[0] and "no calibration" not in errs[1]
+    ((env, algo, members, per_device, devices),) = asked  # measured once, then cached
+    assert (env, algo, members) == ("tracking", "dsac", 2) and per_device * devices >= 2
+    assert [row[-2] for row in rows] == ["measured", "cached"]
+    # The smoke preset's Tracking run, one group: 64 warm-up steps and 128 updating ones of 4 envs,
+    # one evaluation at the end and the compilation.
+    hours = (64 / 4 * 36.0 + 128 / 4 * 360.0 + 3600.0 + 36000.0) / 3600
+    assert float(rows[0][-3]) == float(rows[1][-3]) == pytest.approx(hours, abs=0.05)
+    assert "1 by cached calibration" in text
+    # --no-calibrate: the FLOP model, as plan() without a calibration gives it.
+    status, text, _ = call(paper, capsys, *args, "--no-calibrate")
+    (row,) = [line.split() for line in text.splitlines() if line.startswith("tracking-dsac")]
+    runs = [run for run in paper.campaign() if run.name == "tracking-dsac"]
+    (planned,) = paper.plan(runs, tmp_path / "c", "smoke", 2, 0.25)
+    assert row[-2] == "FLOP" and float(row[-3]) == pytest.approx(planned["flop_cpu_hours"], abs=0.05)
+    assert planned["cpu_hours"] == planned["flop_cpu_hours"] and "FLOP model: the updates' FLOPs" in text
+
+    # A calibration that fails leaves its run to the FLOP model, and says so; how long calibrating
+    # takes is now told by the time the cached one took (4 seeds: another configuration).
+    def fail(*_):
+        raise CalibrationError("boom")
+
+    monkeypatch.setattr(calibration, "calibrate_in_child", fail)
+    status, text, err = call(paper, capsys, *[a if a != "2" else "4" for a in args])
+    assert status == 0 and "calibrating tracking-dsac failed (boom)" in err
+    assert "s each, the median of this machine's 1 calibration(s);" in err
+    (row,) = [line.split() for line in text.splitlines() if line.startswith("tracking-dsac")]
+    assert row[-2] == "FLOP"
 
 
 def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
@@ -65,7 +134,17 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     # the command's --seeds and --set.
     plans = {}
     for sets in ((), ("--set", "actor_width=64")):
-        dry = ["--out", str(out), "--dry-run", "--preset", "smoke", "--only", "tracking-*dsac", *sets]
+        dry = [
+            "--out",
+            str(out),
+            "--dry-run",
+            "--no-calibrate",
+            "--preset",
+            "smoke",
+            "--only",
+            "tracking-*dsac",
+        ]
+        dry += sets
         status, text, _ = call(paper, capsys, *dry)
         assert status == 0
         rows = [line.split() for line in text.splitlines() if line.startswith("tracking-")]
@@ -74,7 +153,7 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     assert plain["tracking-dsac"][3:6] == ["done", "100%", "2"]
     assert plain["tracking-xdsac"][3:6] == ["new", "0%", "20"]
     assert wide["tracking-dsac"] == plain["tracking-dsac"]
-    assert float(wide["tracking-xdsac"][-4]) > float(plain["tracking-xdsac"][-4])  # GFLOP per update
+    assert float(wide["tracking-xdsac"][-5]) > float(plain["tracking-xdsac"][-5])  # GFLOP per update
     # A report that cannot be written fails in one line and keeps the finished runs.
     shutil.rmtree(out / "report")
     (out / "report").write_text("not a folder")
@@ -91,7 +170,16 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     assert row["status"] == "started" and row["progress"] == pytest.approx(128 / 192)
     assert row["cpu_hours_left"] == pytest.approx(row["cpu_hours"] / 2)
     status, text, _ = call(
-        paper, capsys, "--out", str(out), "--dry-run", "--preset", "smoke", "--only", "tracking-dsac"
+        paper,
+        capsys,
+        "--out",
+        str(out),
+        "--dry-run",
+        "--no-calibrate",
+        "--preset",
+        "smoke",
+        "--only",
+        "tracking-dsac",
     )
     assert status == 0 and "started    67%" in text
 

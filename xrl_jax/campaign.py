@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import fnmatch
 import json
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -150,86 +151,219 @@ def check_sets(runs: list[PlannedRun], sets: list[str], preset: str, seeds: int)
             raise ConfigError(f"{planned.name}: {err}") from None
 
 
+@dataclass(frozen=True)
+class _Planned:
+    """A run of the plan as it would run: its configuration, what its checkpoints hold, its devices
+    and member groups."""
+
+    run: PlannedRun
+    status: str
+    cfg: object  # TrainConfig
+    done: list[int]  # per member, the steps its group's newest checkpoint holds
+    devices: int
+    memory: dict
+    agent: object  # the run's Agent, for its FLOPs
+
+    @property
+    def members_per_device(self) -> int:
+        from xrl_jax.train.calibrations import members_per_device
+
+        return members_per_device(self.memory["groups"], self.devices)
+
+    def groups_done(self, left: bool) -> list[int]:
+        """Per member group, the steps done: what its checkpoints hold (``left``), or none."""
+        return [min(self.done[m] for m in group) if left else 0 for group in self.memory["groups"]]
+
+
+def _prepare(run: PlannedRun, out: Path, preset: str, seeds: int, sets: tuple[str, ...]) -> _Planned:
+    from xrl_jax.runs.folder import read_run_config
+    from xrl_jax.train import get_trainer, plan_memory
+    from xrl_jax.train.calibrations import run_devices
+    from xrl_jax.train.chunk import mesh_devices
+
+    status = run_status(out / run.name)
+    # A started run resumes as it was started: neither --preset, --seeds nor --set reach it.
+    cfg = new_run_config(run, preset, seeds, sets) if status == "new" else read_run_config(out / run.name)
+    devices = run_devices(cfg, new_run=status == "new")
+    trainer = get_trainer(cfg, devices=mesh_devices(devices))
+    memory = plan_memory(trainer, cfg)
+    if status == "started":
+        done = member_steps_done(out / run.name, cfg)
+    else:  # a finished run counts as done whatever its checkpoints hold
+        done = [cfg.total_steps if status == "done" else 0] * cfg.num_members
+    return _Planned(run, status, cfg, done, devices, memory, trainer.agent)
+
+
 def plan(
-    runs: list[PlannedRun], out: Path, preset: str, seeds: int, utilisation: float, sets: tuple[str, ...] = ()
+    runs: list[PlannedRun],
+    out: Path,
+    preset: str,
+    seeds: int,
+    utilisation: float,
+    sets: tuple[str, ...] = (),
+    calibrate: Callable | None = None,
+    say: Callable[[str], None] = lambda message: None,
 ) -> list[dict]:
     """One row per run: its status, members, memory and groups on this machine, FLOPs and device-hours,
     each for the configuration that will run: a started or finished run's own (``config.json``), a new
-    one's from the preset, its own settings and the campaign's ``sets``."""
+    one's from the preset, its own settings and the campaign's ``sets``.
+
+    The CPU hours are this machine's calibrations (:mod:`xrl_jax.train.calibrations`): cached ones,
+    and those ``calibrate(cfg, members_per_device, devices) -> record`` measures now (told through
+    ``say`` first: how many, and about how long); without ``calibrate``, or where it fails, the FLOP
+    model (the update's FLOPs at ``measured_rates.json``'s rate). The H100 hours are the FLOP model's."""
+    prepared = [_prepare(run, out, preset, seeds, sets) for run in runs]
+    rates = {} if calibrate is None else calibrated_rates(prepared, calibrate, say)
+    return [_row(p, utilisation, rates.get(p.run.name)) for p in prepared]
+
+
+def _row(p: _Planned, utilisation: float, rate: tuple[dict, str] | None) -> dict:
     from xrl_jax.benchmarks.occupancy import load_occupancy, update_cost
     from xrl_jax.resources import format_bytes
-    from xrl_jax.runs.folder import read_run_config
-    from xrl_jax.train import get_trainer, plan_memory, scenario_kind
+    from xrl_jax.train import scenario_kind
+    from xrl_jax.train.calibrations import predicted_seconds
 
-    occupancy, cpu = load_occupancy(), cpu_flops()
-    rows = []
-    for run in runs:
-        status = run_status(out / run.name)
-        # A started run resumes as it was started: neither --preset, --seeds nor --set reach it.
-        cfg = new_run_config(run, preset, seeds, sets) if status == "new" else read_run_config(out / run.name)
-        trainer = get_trainer(cfg)
-        memory = plan_memory(trainer, cfg)
-        # FLOPs as they run: the packed update, or every slot when a batch overflows (by the measured
-        # occupancy of xrl_jax/benchmarks/set_occupancy.json, members sharing their branches as on one
-        # device).
-        cost = update_cost(trainer.agent, cfg.batch_size, cfg.num_members, occupancy)
-        flops = cost["expected"]
-        if status == "started":
-            done = member_steps_done(out / run.name, cfg)
-        else:  # a finished run counts as done whatever its checkpoints hold
-            done = [cfg.total_steps if status == "done" else 0] * cfg.num_members
-        # A member updates after each step past the warm-up.
-        updates = max(cfg.total_steps - cfg.warmup_steps, 0) * cfg.num_members
-        updates_left = sum(max(cfg.total_steps - max(step, cfg.warmup_steps), 0) for step in done)
-        # On the Intersection one update per acting vehicle: as many as measured per env step under
-        # the scripted driver, which stands for training (after the warm-up a learning policy keeps
-        # its cars on the road as it does; random drivers lose theirs sooner and act less):
-        # set_occupancy.json keeps both, docs/performance.md "How full the sets are" says why.
-        per_step = scenario_kind(cfg).updates_per_env_step(cfg, occupancy)
-        total, left = flops * per_step * updates, flops * per_step * updates_left
-        rows.append(
-            {
-                "run": run.name,
-                "figure": run.figure,
-                "status": status,
-                "members": cfg.num_members,
-                "steps": cfg.total_steps,
-                "memory_per_member": format_bytes(memory["per_seed_bytes"]["total"]),
-                "groups": len(memory["groups"]),
-                "devices": memory["devices"],
-                "gflop_per_update": flops / 1e9,
-                "dense_gflop_per_update": cost["dense"] / 1e9,
-                "fallback_probability": cost["fallback_probability"],
-                "progress": sum(done) / (cfg.total_steps * cfg.num_members),
-                "pflop_total": total / 1e15,
-                "cpu_hours": total / cpu / 3600,
-                "h100_hours": total / (H100_FLOPS * utilisation) / 3600,
-                "cpu_hours_left": left / cpu / 3600,
-                "h100_hours_left": left / (H100_FLOPS * utilisation) / 3600,
-            }
+    cfg, occupancy, cpu = p.cfg, load_occupancy(), cpu_flops()
+    # FLOPs as they run: the packed update, or every slot when a batch overflows (by the measured
+    # occupancy of xrl_jax/benchmarks/set_occupancy.json, members sharing their branches as on one
+    # device).
+    cost = update_cost(p.agent, cfg.batch_size, cfg.num_members, occupancy)
+    flops = cost["expected"]
+    # A member updates after each step past the warm-up.
+    updates = max(cfg.total_steps - cfg.warmup_steps, 0) * cfg.num_members
+    updates_left = sum(max(cfg.total_steps - max(step, cfg.warmup_steps), 0) for step in p.done)
+    # On the Intersection one update per acting vehicle: as many as measured per env step under
+    # the scripted driver, which stands for training (after the warm-up a learning policy keeps
+    # its cars on the road as it does; random drivers lose theirs sooner and act less):
+    # set_occupancy.json keeps both, docs/performance.md "How full the sets are" says why.
+    per_step = scenario_kind(cfg).updates_per_env_step(cfg, occupancy)
+    total, left = flops * per_step * updates, flops * per_step * updates_left
+    row = {
+        "run": p.run.name,
+        "figure": p.run.figure,
+        "status": p.status,
+        "members": cfg.num_members,
+        "steps": cfg.total_steps,
+        "memory_per_member": format_bytes(p.memory["per_seed_bytes"]["total"]),
+        "groups": len(p.memory["groups"]),
+        "devices": p.devices,
+        "members_per_device": p.members_per_device,
+        "gflop_per_update": flops / 1e9,
+        "dense_gflop_per_update": cost["dense"] / 1e9,
+        "fallback_probability": cost["fallback_probability"],
+        "progress": sum(p.done) / (cfg.total_steps * cfg.num_members),
+        "pflop_total": total / 1e15,
+        "flop_cpu_hours": total / cpu / 3600,
+        "flop_cpu_hours_left": left / cpu / 3600,
+        "h100_hours": total / (H100_FLOPS * utilisation) / 3600,
+        "h100_hours_left": left / (H100_FLOPS * utilisation) / 3600,
+        "cpu_source": "FLOP",
+    }
+    row["cpu_hours"], row["cpu_hours_left"] = row["flop_cpu_hours"], row["flop_cpu_hours_left"]
+    if rate is not None:
+        record, source = rate
+        whole = predicted_seconds(cfg, record, p.groups_done(left=False))
+        rest = predicted_seconds(cfg, record, p.groups_done(left=True))
+        row.update(cpu_source=source, cpu_hours=whole["total_s"] / 3600)
+        row["cpu_hours_left"] = rest["total_s"] / 3600
+        row["calibrated_s"] = whole
+    return row
+
+
+def calibrated_rates(prepared: list[_Planned], calibrate: Callable, say: Callable[[str], None]) -> dict:
+    """Per run name, ``(record, "cached" | "measured")``: the cached calibration of its configuration
+    on this machine, or one measured now with ``calibrate`` (and cached); runs of one configuration
+    share one. A calibration that fails is told, and leaves its runs to the FLOP model."""
+    from xrl_jax.benchmarks.calibration import CalibrationError
+    from xrl_jax.resources import format_duration
+    from xrl_jax.train import calibrations
+
+    found, missing = {}, {}
+    for p in prepared:
+        key = calibrations.calibration_key(p.cfg, p.members_per_device, p.devices)
+        record = calibrations.load_calibration(key, warn=say)
+        if record is not None:
+            found[p.run.name] = (record, "cached")
+        else:
+            missing.setdefault(json.dumps(key, sort_keys=True), (key, []))[1].append(p)
+    if not missing:
+        return found
+    each, basis = typical_calibration_s()
+    say(
+        f"{len(missing)} configuration(s) have no calibration on this machine; measuring them takes "
+        f"~{format_duration(each * len(missing))} (~{each:.0f} s each, {basis}; more members and wider "
+        "networks take longer); --no-calibrate estimates from FLOPs instead"
+    )
+    for index, (key, group) in enumerate(missing.values()):
+        names, first = ", ".join(p.run.name for p in group), group[0]
+        tic = time.perf_counter()
+        try:
+            record = calibrate(first.cfg, first.members_per_device, first.devices)
+        except (CalibrationError, OSError) as err:
+            say(f"calibrating {names} failed ({err}); its CPU hours come from the FLOP model")
+            continue
+        record = dict(record, calibration_s=time.perf_counter() - tic)  # as long as the plan waited
+        calibrations.store_calibration(key, record)
+        others = record.get("others_cpu_share") or 0.0
+        busy = (
+            f"; other processes took {others:.0%} of the CPUs meanwhile: slow rates" if others > 0.2 else ""
         )
-    return rows
+        say(
+            f"calibrated {names} ({first.members_per_device} member(s) per device on {first.devices} "
+            f"device(s)) in {record['calibration_s']:.0f} s ({index + 1}/{len(missing)}){busy}"
+        )
+        found.update({p.run.name: (record, "measured") for p in group})
+    return found
+
+
+def typical_calibration_s() -> tuple[float, str]:
+    """How long a calibration takes here, and on what that rests: the median of this machine's cached
+    calibrations, or without any the one measured in ``measured_rates.json``."""
+    from xrl_jax.train.calibrations import cached_calibrations
+
+    seconds = sorted(r.get("calibration_s", 0.0) for r in cached_calibrations())
+    if seconds:
+        return seconds[len(seconds) // 2], f"the median of this machine's {len(seconds)} calibration(s)"
+    measured = json.loads(MEASURED_RATES.read_text())["calibration_s"]
+    return float(measured["value"]), measured["basis"]
+
+
+SOURCES = {"cached": "cached calibration", "measured": "calibrated now", "FLOP": "FLOP model"}
 
 
 def format_plan(rows: list[dict], utilisation: float) -> list[str]:
-    """The plan as a table (each run's whole cost, and how much of it its checkpoints already hold),
-    and the device-hours of what is still to run."""
+    """The plan as a table (each run's whole cost, and how much of it its checkpoints already hold,
+    with where its CPU hours come from), and the device-hours of what is still to run."""
     lines = [
         f"{'run':<30} {'for':<8} {'status':<8} {'done':>5} {'members':>7} {'memory/member':>13} "
-        f"{'groups':>6} {'GFLOP/upd':>9} {'dense':>7} {'CPU h':>10} {'H100 h':>8}"
+        f"{'groups':>6} {'devices':>7} {'GFLOP/upd':>9} {'dense':>7} {'CPU h':>10} {'CPU from':<9} "
+        f"{'H100 h':>8}"
     ]
     for r in rows:
         lines.append(
             f"{r['run']:<30} {r['figure']:<8} {r['status']:<8} {r['progress']:>5.0%} {r['members']:>7} "
-            f"{r['memory_per_member']:>13} {r['groups']:>6} {r['gflop_per_update']:>9.3g} "
-            f"{r['dense_gflop_per_update']:>7.3g} {r['cpu_hours']:>10,.1f} {r['h100_hours']:>8,.2f}"
+            f"{r['memory_per_member']:>13} {r['groups']:>6} {r['devices']:>7} {r['gflop_per_update']:>9.3g} "
+            f"{r['dense_gflop_per_update']:>7.3g} {r['cpu_hours']:>10,.1f} {r['cpu_source']:<9} "
+            f"{r['h100_hours']:>8,.2f}"
         )
     cpu, h100 = sum(r["cpu_hours_left"] for r in rows), sum(r["h100_hours_left"] for r in rows)
+    counts = {source: sum(r["cpu_source"] == source for r in rows) for source in SOURCES}
+    sources = ", ".join(f"{n} by {SOURCES[source]}" for source, n in counts.items() if n)
     lines.append(
-        f"total still to run: {cpu:,.0f} CPU hours at {cpu_flops() / 1e9:.0f} GFLOP/s (measured_rates.json), "
-        f"{h100:,.1f} H100 hours at {utilisation:.0%} of {H100_FLOPS / 1e12:.0f} TFLOP/s; updates only "
-        "(an env step costs a small fraction of an update: docs/benchmarks.md)"
+        f"total still to run: {cpu:,.1f} CPU hours on this machine ({sources}), {h100:,.1f} H100 hours "
+        f"at {utilisation:.0%} of {H100_FLOPS / 1e12:.0f} TFLOP/s (FLOP model)"
     )
+    if counts["FLOP"]:
+        lines.append(
+            f"FLOP model: the updates' FLOPs at {cpu_flops() / 1e9:.0f} GFLOP/s on a CPU "
+            "(measured_rates.json), updates only; at the quick preset's widths a CPU reaches a fraction "
+            "of that (docs/performance.md, Estimates that hold)"
+        )
+    if counts["cached"] + counts["measured"]:
+        lines.append(
+            "calibrated: this machine's measured seconds per vector step (updates included) and per "
+            "evaluation, for each run's members per device; compilation once, checkpoints not counted"
+        )
     return lines
 
 

@@ -89,12 +89,13 @@ def backend_summary() -> str:
     devices = jax.devices()
     backend = jax.default_backend()
     if backend == "cpu":
-        return f"cpu ({os.cpu_count()} cores: {_cpu_model()})"
+        return f"cpu ({os.cpu_count()} cores: {cpu_model()})"
     kinds = sorted({d.device_kind for d in devices})
     return f"{backend} ({len(devices)} device(s): {', '.join(kinds)})"
 
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo on Linux), as backends and calibrations name the machine."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):

@@ -126,8 +126,11 @@ class RunClock:
         return cost(next_chunk) + (self.num_groups - group_index - 1) * cost(0)
 
 
-def cost_lines(cfg: TrainConfig, elapsed_s: float, remaining_s: float, backend: str) -> list[str]:
-    """The estimate of the whole run's time, with a warning and the alternatives beyond a day."""
+def cost_lines(
+    cfg: TrainConfig, elapsed_s: float, remaining_s: float, backend: str, basis: str = ""
+) -> list[str]:
+    """The estimate of the whole run's time (``basis``: what it rests on, when not this session's
+    measured chunks), with a warning and the alternatives beyond a day."""
     total = elapsed_s + remaining_s
     steps = cfg.num_members * cfg.total_steps
     finish = time.strftime("%a %H:%M", time.localtime(time.time() + remaining_s))
@@ -135,7 +138,7 @@ def cost_lines(cfg: TrainConfig, elapsed_s: float, remaining_s: float, backend: 
     lines = [
         f"estimate: the whole run ({cfg.num_seeds} seed(s){points} x {cfg.total_steps:,} steps) takes "
         f"~{format_duration(total)} on {backend} ({steps / max(total, 1e-9):,.0f} steps/s); "
-        f"done around {finish}"
+        f"done around {finish}" + (f" ({basis})" if basis else "")
     ]
     if total > LONG_RUN_S:
         lines.append(

@@ -1,7 +1,9 @@
 """What the host loop shows while it trains: the progress bar with the time left, lines written above
 it, and once a steady chunk has been timed, the whole run's cost estimate. Both estimates are the
 clock's (:mod:`xrl_jax.train.clock`), not tqdm's own: tqdm's rate would start from the warm-up chunks,
-which run without updates, and mix the evaluations and checkpoints into it."""
+which run without updates, and mix the evaluations and checkpoints into it. Before the first chunk,
+where this machine has calibrated the run's configuration (:mod:`xrl_jax.train.calibrations`), the
+whole run's cost by that calibration."""
 
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ import time
 import numpy as np
 
 from xrl_jax.config import TrainConfig
+from xrl_jax.train.calibrations import calibrated_remaining_s
 from xrl_jax.train.chunk import ChunkReport
 from xrl_jax.train.clock import RunClock, cost_lines
 
@@ -32,6 +35,8 @@ class Console:
         self.cfg, self.log, self.warn, self.enabled = cfg, log, warn, enabled
         self.backend, self.start_time = backend, start_time
         self.bar = None
+        self.warned = False  # the long-run warning has been given
+        self.calibration_told = False  # the estimate by a cached calibration, before the first chunk
 
     def open(self, done_steps: int) -> None:
         """Show the bar (once), ``done_steps`` of every member's steps already done."""
@@ -73,12 +78,30 @@ class Console:
             return
         clock.estimated = True
         remaining = clock.remaining_s(group_index, chunk_index + 1)
+        self._tell(remaining, "")
+
+    def estimate_calibrated(
+        self, groups: list[list[int]], devices: int, group_index: int, next_chunk: int
+    ) -> None:
+        """Before the session's first chunk (once): the run's cost from chunk ``next_chunk`` of member
+        group ``group_index`` on, by this machine's cached calibration of its configuration, if there
+        is one (a run never calibrates itself); the measured estimate follows once a chunk is timed."""
+        if self.calibration_told:
+            return
+        self.calibration_told = True
+        found = calibrated_remaining_s(self.cfg, groups, devices, group_index, next_chunk, self.warn)
+        if found is not None:
+            created = str(found[1].get("created", "an earlier day"))[:10]
+            self._tell(found[0], f"by this machine's calibration of {created}; measured after some chunks")
+
+    def _tell(self, remaining_s: float, basis: str) -> None:
         estimate, *warnings = cost_lines(
-            self.cfg, time.perf_counter() - self.start_time, remaining, self.backend
+            self.cfg, time.perf_counter() - self.start_time, remaining_s, self.backend, basis
         )
         self.above_bar(self.log, estimate)
-        for line in warnings:
+        for line in warnings if not self.warned else ():  # once: the first estimate's
             self.above_bar(self.warn, line)
+        self.warned = self.warned or bool(warnings)
 
     def close(self) -> None:
         if self.bar is not None:

@@ -240,6 +240,7 @@ class _HostLoop:
             if state is None:
                 seeds = [cfg.member_point_seed(m)[1] for m in rows]
                 state = trainer.init(cfg.seed, seeds, member_hparams(cfg, trainer.agent, rows))
+            self.console.estimate_calibrated(self.groups, trainer.num_devices, group_index, next_chunk)
             self._compile(state, next_chunk)
             self.clock.start_group()
             self.console.open(self.done_steps)
