@@ -261,4 +261,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    status = main()
+    from xrl_jax.train.cpu_devices import end_process
+
+    end_process(status)  # a split CPU host ends without its teardown

@@ -345,4 +345,7 @@ def _train(args, argv, prepared, stop) -> int:
 
 if __name__ == "__main__":
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
-    sys.exit(main())
+    status = main()
+    from xrl_jax.train.cpu_devices import end_process
+
+    end_process(status)  # a split CPU host ends without its teardown

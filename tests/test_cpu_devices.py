@@ -77,6 +77,7 @@ CHILD = textwrap.dedent(
     status = run.main(sys.argv[2:])
     import jax
     print(json.dumps({{"status": status, "devices": len(jax.devices())}}))
+    cpu_devices.end_process(0)  # as run.py's own end
     """
 )
 
