@@ -116,5 +116,5 @@ def test_a_split_host_waits_patiently_in_its_collectives(monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_collective_call_warn_stuck_timeout_seconds=5")
     cpu_devices.split_cpu_host(2)  # the backend runs already: only the flags change
     flags = cpu_devices.os.environ["XLA_FLAGS"]
-    assert "--xla_cpu_collective_call_terminate_timeout_seconds=86400" in flags
+    assert "--xla_cpu_collective_call_terminate_timeout_seconds=1800" in flags
     assert flags.count("warn_stuck_timeout") == 1  # the user's own value stands
