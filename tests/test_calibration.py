@@ -148,6 +148,7 @@ def test_a_cached_calibration_is_told_before_the_chunks_and_its_long_run_warning
     assert len(lines) == 2
 
 
+@pytest.mark.slow  # a real calibration and a run (~20 s each on 2 cores): the default tier's budget
 def test_a_real_calibration_is_cached_and_a_run_tells_its_cost_before_its_first_chunk(tmp_path):
     """The trivial env at the smoke preset: a calibration in this process (its devices as they are),
     then a run of the same configuration, which finds it and tells the estimate before compiling."""

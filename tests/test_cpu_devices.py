@@ -94,6 +94,7 @@ def run_child(cores: int, args: list[str]) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # two fresh processes that each compile a run (~15 s each on 2 cores)
 def test_a_new_run_uses_every_core_and_its_resume_splits_the_host_alike(tmp_path):
     out = tmp_path / "run"
     steps = ["--steps", "128", "--set", "log_interval=64", "--set", "checkpoint_interval=64"]
