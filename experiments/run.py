@@ -197,7 +197,7 @@ def split_cpu_host_early(argv: list[str]) -> None:
     Bad or missing values are left to the full parse, which reports them; a job of several processes
     splits nothing."""
     from xrl_jax.config import SCENARIOS, ConfigError, parse_overrides, parse_sweep, scenario
-    from xrl_jax.train import cpu_devices
+    from xrl_jax.train import cpu_devices, hosts
     from xrl_jax.train.kinds import KINDS
 
     early = argparse.ArgumentParser(add_help=False)
@@ -207,7 +207,7 @@ def split_cpu_host_early(argv: list[str]) -> None:
     early.add_argument("--set", action="append", default=[])
     try:
         known, _ = early.parse_known_args(argv)
-        if known.coordinator or known.num_processes:
+        if known.coordinator or known.num_processes or hosts.wanted():
             return
         if known.devices:
             cpu_devices.split_cpu_host(int(known.devices))
