@@ -16,6 +16,11 @@ def paper(tmp_path_factory):
     return load_script("paper", "paper_cli")
 
 
+def flop_dry_run(out, only: str) -> list[str]:
+    """paper.py's arguments for a smoke-preset dry run of ``only`` costed by the FLOP model."""
+    return ["--out", str(out), "--dry-run", "--no-calibrate", "--preset", "smoke", "--only", only]
+
+
 def test_the_campaign_holds_every_figure_of_the_paper(paper):
     runs = {run.name: run for run in paper.campaign()}
     assert len(runs) == 12 + 1 + 2  # 3 envs x 4 agents, the kappa sweep, two Table I variants
@@ -26,7 +31,7 @@ def test_the_campaign_holds_every_figure_of_the_paper(paper):
 
 def test_dry_run_prints_the_plan_and_writes_nothing(paper, capsys, tmp_path):
     out = tmp_path / "campaign"
-    args = ["--out", str(out), "--dry-run", "--no-calibrate", "--preset", "smoke", "--only", "tracking-d*"]
+    args = flop_dry_run(out, "tracking-d*")
     status, text, _ = call(paper, capsys, *args)
     assert status == 0 and not out.exists()
     (row,) = [line.split() for line in text.splitlines() if line.startswith("tracking-")]
@@ -34,16 +39,7 @@ def test_dry_run_prints_the_plan_and_writes_nothing(paper, capsys, tmp_path):
     assert float(row[-5]) > 0 and "H100 hours at 25% of 67 TFLOP/s" in text  # GFLOP per update
     assert row[-2] == "FLOP" and "1 by FLOP model" in text  # --no-calibrate: the FLOP model, labelled
     # Patterns match whole names: the Country Road pair of Fig. 5 without the kappa sweep.
-    args = [
-        "--out",
-        str(out),
-        "--dry-run",
-        "--no-calibrate",
-        "--preset",
-        "smoke",
-        "--only",
-        "country_road-*dsac",
-    ]
+    args = flop_dry_run(out, "country_road-*dsac")
     status, text, _ = call(paper, capsys, *args)
     names = [line.split()[0] for line in text.splitlines() if line.startswith("country_road-")]
     assert status == 0 and names == ["country_road-dsac", "country_road-xdsac"]
@@ -134,17 +130,7 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     # the command's --seeds and --set.
     plans = {}
     for sets in ((), ("--set", "actor_width=64")):
-        dry = [
-            "--out",
-            str(out),
-            "--dry-run",
-            "--no-calibrate",
-            "--preset",
-            "smoke",
-            "--only",
-            "tracking-*dsac",
-        ]
-        dry += sets
+        dry = [*flop_dry_run(out, "tracking-*dsac"), *sets]
         status, text, _ = call(paper, capsys, *dry)
         assert status == 0
         rows = [line.split() for line in text.splitlines() if line.startswith("tracking-")]
@@ -172,14 +158,7 @@ def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     status, text, _ = call(
         paper,
         capsys,
-        "--out",
-        str(out),
-        "--dry-run",
-        "--no-calibrate",
-        "--preset",
-        "smoke",
-        "--only",
-        "tracking-dsac",
+        *flop_dry_run(out, "tracking-dsac"),
     )
     assert status == 0 and "started    67%" in text
 
