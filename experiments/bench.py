@@ -11,11 +11,17 @@
                                          auto, the default: one CPU device per core the seeds fill)
     python experiments/bench.py compare  --against REV [--rounds 3] [train's options ...]
     python experiments/bench.py tracks   [--seeds 1 4 20] [--count 64]
+    python experiments/bench.py profile  [--env tracking] [--algo xdsac] [--seeds 2] [--width 64]
+                                         [--preset quick] [--depth 3] [--set KEY=VALUE ...]
 
 Numbers are wall-clock rates after compilation (compile time is reported separately), measured with
 ``block_until_ready`` on the default JAX device (``train --devices``: on that many devices; on a
 CPU-only machine the host is split into that many XLA devices). Tests never assert timings; these
 scripts do.
+
+``profile`` traces one updating chunk on one device with ``jax.profiler`` and sums its ops' time by
+the model part that the optimised HLO names (forward and backward apart), with the slowest ops
+(xrl_jax.benchmarks.profile; docs/performance.md, "Where an update's time goes").
 
 ``compare`` times ``train`` in this working tree (uncommitted changes included) and in REV (a commit,
 checked out as a detached git worktree in a temporary folder, removed at the end), each run a fresh
@@ -89,6 +95,14 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_parser.add_argument("--rounds", type=positive_int, default=3, help="runs per side, order alternating")
     for action in add_train_arguments(cmp_parser):  # passed on as given: unset, each side's own default
         action.default = argparse.SUPPRESS
+    pf_parser = sub.add_parser("profile", help="one chunk's op time by model part (jax.profiler)")
+    pf_parser.add_argument("--env", default="tracking", choices=["tracking", "country_road", "intersection"])
+    pf_parser.add_argument("--algo", default="xdsac", choices=["sac", "dsac", "xsac", "xdsac"])
+    pf_parser.add_argument("--seeds", type=positive_int, default=2, help="members on the one device")
+    pf_parser.add_argument("--width", type=positive_int, default=None, help="actor/critic width")
+    pf_parser.add_argument("--preset", default="quick", choices=PRESETS)
+    pf_parser.add_argument("--depth", type=positive_int, default=3, help="module path components per part")
+    pf_parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra config overrides")
     tk_parser = sub.add_parser("tracks", help="fresh-track refill cost per track, FLOPs per track")
     tk_parser.add_argument("--seeds", nargs="+", type=positive_int, default=[1, 4, 20])
     tk_parser.add_argument(
@@ -255,6 +269,10 @@ def main(argv: list[str] | None = None) -> int:
         report["results"] = [B.bench_tracks(seeds, args.count, args.repeats) for seeds in args.seeds]
     elif args.command == "matmul":
         report["results"] = B.bench_matmul(args.size)
+    elif args.command == "profile":
+        report["results"] = B.bench_profile(
+            args.env, args.algo, args.seeds, args.width, args.preset, args.set, depth=args.depth
+        )
     json.dump(report, sys.stdout, indent=2)
     print()
     return 0

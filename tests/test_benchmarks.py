@@ -33,6 +33,8 @@ def bench():
         (["update", "--env", "moon"], "invalid choice: 'moon'"),
         (["env", "--scenarios", "nope"], "--scenarios: invalid choice: 'nope'"),  # was a traceback
         (["env", "--scenarios", "intersection"], "--scenarios: invalid choice: 'intersection'"),
+        (["profile", "--seeds", "0"], "--seeds: expected a positive integer, got 0"),
+        (["profile", "--algo", "ppo"], "--algo: invalid choice: 'ppo'"),
     ],
 )
 def test_bench_refuses_bad_input_in_one_line(bench, capsys, args, message):
@@ -90,3 +92,51 @@ def test_table_one_shows_missing_numbers_as_a_dash():
     assert rule == "-" * len(header) and len(line) == len(header)
     assert line.split()[-6:] == ["136,455", "136,455", "1,000,000", "–", "988,262", "600,000"]
     assert "12 rows one observation reserves" in note and "probability 0.013" in note
+
+
+def test_profile_names_the_model_part_of_each_op():
+    """Toy HLO and trace events whose sums are known by hand: JAX's transformations are dropped from
+    the op names, the backward pass is told apart, enclosing events and unknown ops are not parts."""
+    from xrl_jax.benchmarks.profile import instruction_sources, model_part, op_times, time_by_part
+
+    actor = "jit(chunk_block)/vmap()/while/body/closed_call/cond/branch_1_fun/transpose(jvp(Actor))/"
+    critic = "jit(chunk_block)/vmap()/jvp(Critic)/"
+    hlo = (
+        f'  %dot.36 = f32[2,64,64]{{2,1,0}} dot(%a, %b), metadata={{op_name="{actor}'
+        'Actor.per_object/trunk/hidden_1/dot_general" source_file="x.py"}\n'
+        f'  ROOT %fusion.2 = f32[2,128]{{1,0}} fusion(%c), metadata={{op_name="{critic}'
+        'Critic.q/dense_0/dot"}\n'
+        "  %copy.1 = f32[4]{0} copy(%d)\n"
+    )
+    sources = instruction_sources(hlo)
+    assert set(sources) == {"dot.36", "fusion.2"}  # copy.1 carries no metadata
+    assert model_part(sources["dot.36"]) == "backward: Actor.per_object/trunk/hidden_1"
+    assert model_part(sources["fusion.2"], depth=2) == "Critic.q/dense_0"
+    assert model_part("jit(chunk_block)/vmap()") == "(unnamed)"
+    events = [
+        {"ph": "X", "name": "dot.36", "dur": 300.0},
+        {"ph": "X", "name": "dot.36", "dur": 100.0},
+        {"ph": "X", "name": "fusion.2", "dur": 100.0},
+        {"ph": "X", "name": "copy.1", "dur": 500.0},
+        {"ph": "X", "name": "ThunkExecutor::Execute", "dur": 10_000.0},  # encloses the others
+        {"ph": "i", "name": "fusion.2", "dur": 7.0},  # not a complete event
+    ]
+    times = op_times(events)
+    assert times == {"dot.36": 400.0, "fusion.2": 100.0, "copy.1": 500.0}
+    parts = {p["part"]: (p["ms"], p["share"]) for p in time_by_part(times, sources)}
+    assert parts == {
+        "(not in the program)": (0.5, 0.5),
+        "backward: Actor.per_object/trunk/hidden_1": (0.4, 0.4),
+        "Critic.q/dense_0/dot": (0.1, 0.1),
+    }
+
+
+@pytest.mark.slow
+def test_profile_of_a_smoke_chunk_accounts_for_its_ops():
+    """One traced smoke chunk: parts that the model names, shares that add up to one."""
+    from xrl_jax.benchmarks import bench_profile
+
+    out = bench_profile("tracking", "xdsac", 2, None, "smoke", [])
+    shares = [p["share"] for p in out["parts"]]
+    assert out["ops_ms"] > 0 and abs(sum(shares) - 1) < 1e-9
+    assert any("MixtureCategoricalActor" in p["part"] for p in out["parts"])

@@ -8,6 +8,7 @@ timings, these do. docs/benchmarks.md holds the measured numbers.
 * :mod:`.rollouts`: env steps per second, the fresh-track feed's cost;
 * :mod:`.updates`: gradient updates per second, end-to-end training steps per second;
 * :mod:`.table_one`: parameter counts and inference FLOPs on Country Road shapes;
+* :mod:`.profile`: one chunk's op time by model part (``jax.profiler`` and the optimised HLO);
 * :mod:`.compare`: two versions' ``bench.py train`` side by side, in turn, in processes of their own.
 """
 
@@ -25,6 +26,7 @@ _EXPORTS = {
     "machine_info": "timing",
     "bench_train": "updates",
     "bench_update": "updates",
+    "bench_profile": "profile",
 }
 
 
