@@ -113,6 +113,16 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         return fail(PROG, err)
     out = Path(args.out)
+    from xrl_jax.train import cpu_devices, hosts  # imports jax: not before --help
+
+    if not hosts.wanted():  # a job of several processes starts its backend in jax.distributed
+        # Once for every run of the campaign, before JAX's backend starts; each run takes its own count
+        # of these devices (the Intersection a device per member, up to two per core). The backend
+        # starts now: a run's own split (run.py's) would replace the count.
+        import jax
+
+        cpu_devices.split_cpu_host(cpu_devices.most_cpu_devices(cpu_devices.cpu_cores()))
+        jax.devices()
     if args.dry_run:
         return dry_run(args, runs, out)
     import run as run_cli
@@ -132,11 +142,6 @@ def main(argv: list[str] | None = None) -> int:
 def dry_run(args: argparse.Namespace, runs: list, out: Path) -> int:
     """Print the plan (:func:`~xrl_jax.campaign.plan`), measuring the missing calibrations each in a
     fresh process split as its run would be, unless --no-calibrate."""
-    from xrl_jax.train import cpu_devices  # imports jax: not before --help
-
-    # Before JAX's backend starts: as many CPU devices as any run would use (each uses its own count
-    # of them for its memory plan).
-    cpu_devices.split_cpu_host(cpu_devices.cpu_cores())
     from xrl_jax.benchmarks import calibration
     from xrl_jax.runs.folder import RunFolderError
 
@@ -154,4 +159,7 @@ def dry_run(args: argparse.Namespace, runs: list, out: Path) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    status = main()
+    from xrl_jax.train.cpu_devices import end_process
+
+    end_process(status)  # a split CPU host ends without its teardown

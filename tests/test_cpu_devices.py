@@ -2,6 +2,7 @@
 whose resume splits the host as the run did, whatever the machine it resumes on."""
 
 import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -71,6 +72,11 @@ CHILD = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from xrl_jax.train import cpu_devices
     cpu_devices.cpu_cores = lambda: int(sys.argv[1])
+    import os
+    if os.environ.get("PRESPLIT"):  # as paper.py: split for the campaign's most, start the backend
+        import jax
+        cpu_devices.split_cpu_host(int(os.environ["PRESPLIT"]))
+        jax.devices()
     import importlib.util
     found = importlib.util.spec_from_file_location("run", {run!r})
     run = importlib.util.module_from_spec(found); sys.modules["run"] = run; found.loader.exec_module(run)
@@ -82,12 +88,14 @@ CHILD = textwrap.dedent(
 )
 
 
-def run_child(cores: int, args: list[str]) -> dict:
+def run_child(cores: int, args: list[str], presplit: int = 0) -> dict:
     script = CHILD.format(tests=str(DATA.parent), run=str(DATA.parents[1] / "experiments" / "run.py"))
+    env = {**os.environ, "PRESPLIT": str(presplit)} if presplit else None
     try:
         done = subprocess.run(
-            [sys.executable, "-c", script, str(cores), *args], capture_output=True, text=True, timeout=300
-        )
+            [sys.executable, "-c", script, str(cores), *args],
+            capture_output=True, text=True, timeout=300, env=env,
+        )  # fmt: skip
     except subprocess.TimeoutExpired as err:
         pytest.fail(f"the run did not end within 300 s: {(err.stderr or b'')[-3000:]!r}")
     assert done.returncode == 0, done.stderr[-2000:]
@@ -105,6 +113,18 @@ def test_a_new_run_uses_every_core_and_its_resume_splits_the_host_alike(tmp_path
     # The run is complete; its resume finds nothing left to train but still splits the host as stored.
     again = run_child(1, ["--import", FAST_ENV_MODULE, "--resume", str(out), "--quiet"])
     assert again == {"status": 0, "devices": 2}
+
+
+@pytest.mark.slow  # a fresh process that compiles a run (~15 s on 2 cores)
+def test_a_run_in_a_host_split_for_a_campaign_takes_its_own_count(tmp_path):
+    """paper.py splits its host once for the runs that want most devices (the Intersection's two per
+    core); a racing run in it takes the devices its rule gives (4 seeds on 2 cores: 2), not all 4."""
+    assert cpu_devices.most_cpu_devices(2) == 4
+    out = tmp_path / "run"
+    args = [*FAST_ENV_ARGS, "--algo", "dsac", "--preset", "smoke", "--seeds", "4", "--quiet"]
+    child = run_child(2, [*args, "--steps", "64", "--set", "log_interval=64", "--out", str(out)], presplit=4)
+    assert child == {"status": 0, "devices": 4}
+    assert json.loads((out / "config.json").read_text())["config"]["num_devices"] == 2
 
 
 def test_devices_given_split_the_host(tmp_path):

@@ -331,6 +331,11 @@ def typical_calibration_s() -> tuple[float, str]:
 SOURCES = {"cached": "cached calibration", "measured": "calibrated now", "FLOP": "FLOP model"}
 
 
+def hours(value: float) -> str:
+    """Hours with two significant digits below 10 (a quick run's 0.15 h is not 0.1), whole above."""
+    return f"{value:,.0f}" if value >= 10 else f"{value:.2g}" if value >= 0.01 else f"{value:.1g}"
+
+
 def format_plan(rows: list[dict], utilisation: float) -> list[str]:
     """The plan as a table (each run's whole cost, and how much of it its checkpoints already hold,
     with where its CPU hours come from), and the device-hours of what is still to run."""
@@ -343,14 +348,14 @@ def format_plan(rows: list[dict], utilisation: float) -> list[str]:
         lines.append(
             f"{r['run']:<30} {r['figure']:<8} {r['status']:<8} {r['progress']:>5.0%} {r['members']:>7} "
             f"{r['memory_per_member']:>13} {r['groups']:>6} {r['devices']:>7} {r['gflop_per_update']:>9.3g} "
-            f"{r['dense_gflop_per_update']:>7.3g} {r['cpu_hours']:>10,.1f} {r['cpu_source']:<9} "
+            f"{r['dense_gflop_per_update']:>7.3g} {hours(r['cpu_hours']):>10} {r['cpu_source']:<9} "
             f"{r['h100_hours']:>8,.2f}"
         )
     cpu, h100 = sum(r["cpu_hours_left"] for r in rows), sum(r["h100_hours_left"] for r in rows)
     counts = {source: sum(r["cpu_source"] == source for r in rows) for source in SOURCES}
     sources = ", ".join(f"{n} by {SOURCES[source]}" for source, n in counts.items() if n)
     lines.append(
-        f"total still to run: {cpu:,.1f} CPU hours on this machine ({sources}), {h100:,.1f} H100 hours "
+        f"total still to run: {hours(cpu)} CPU hours on this machine ({sources}), {h100:,.1f} H100 hours "
         f"at {utilisation:.0%} of {H100_FLOPS / 1e12:.0f} TFLOP/s (FLOP model)"
     )
     if counts["FLOP"]:

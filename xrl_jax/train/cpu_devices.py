@@ -47,6 +47,14 @@ def auto_cpu_devices(cfg: TrainConfig, cores: int) -> int:
     return devices_for_members(members_at_once(cfg), cores, scenario_kind(cfg).cpu_devices_per_core)
 
 
+def most_cpu_devices(cores: int) -> int:
+    """The most CPU devices any run takes on ``cores`` cores (the scenario kind with the most per
+    core): a process that trains several configurations (``paper.py``) splits its host so once."""
+    from xrl_jax.train.kinds import KINDS
+
+    return max(cores, 1) * max(kind.cpu_devices_per_core for kind in KINDS.values())
+
+
 def devices_for_members(members: int, cores: int, per_core: int = 1) -> int:
     """``per_core`` devices per core, as many as ``members`` trained together fill evenly (a device of
     padding repeats a member's work: it would cost a core's time for nothing), never more than the

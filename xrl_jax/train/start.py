@@ -194,9 +194,14 @@ def _split_cpu_host(cfg: TrainConfig, new_run: bool, notes: list[str]) -> TrainC
         return cfg
     if not new_run or jax.distributed.is_initialized():
         return cfg
-    cpu_devices.split_cpu_host(cpu_devices.auto_cpu_devices(cfg, cpu_devices.cpu_cores()))
-    if jax.default_backend() == "cpu":  # split now, or before (run.py, the user's XLA_FLAGS): as it is
-        return cfg.replace(num_devices=len(jax.local_devices()))
+    rule = cpu_devices.auto_cpu_devices(cfg, cpu_devices.cpu_cores())
+    cpu_devices.split_cpu_host(rule)
+    if jax.default_backend() == "cpu":
+        # Split now, by run.py before, or by the user's XLA_FLAGS (whose count stands); a process that
+        # runs several configurations (paper.py) splits for the one that wants most: this one takes
+        # the rule's count of those.
+        have = len(jax.local_devices())
+        return cfg.replace(num_devices=have if cpu_devices.flagged_host_devices() else min(rule, have))
     return cfg
 
 
