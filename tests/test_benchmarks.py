@@ -136,7 +136,7 @@ def test_profile_of_a_smoke_chunk_accounts_for_its_ops():
     """One traced smoke chunk: parts that the model names, shares that add up to one."""
     from xrl_jax.benchmarks import bench_profile
 
-    out = bench_profile("tracking", "xdsac", 2, None, "smoke", [])
+    out = bench_profile("tracking", "xdsac", 2, None, "smoke", ["log_interval=64"])
     shares = [p["share"] for p in out["parts"]]
     assert out["ops_ms"] > 0 and abs(sum(shares) - 1) < 1e-9
     assert any("MixtureCategoricalActor" in p["part"] for p in out["parts"])
