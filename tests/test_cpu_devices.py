@@ -127,6 +127,7 @@ def test_a_run_in_a_host_split_for_a_campaign_takes_its_own_count(tmp_path):
     assert json.loads((out / "config.json").read_text())["config"]["num_devices"] == 2
 
 
+@pytest.mark.slow  # a fresh process that compiles a run (14 s on 2 cores): the default tier's budget
 def test_devices_given_split_the_host(tmp_path):
     args = [*FAST_ENV_ARGS, "--algo", "dsac", "--preset", "smoke", "--seeds", "1", "--quiet"]
     child = run_child(2, [*args, "--steps", "64", "--set", "log_interval=64", "--devices", "1"])
