@@ -41,7 +41,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cli_args import OneLineParser, fail, positive_int
 
-from xrl_jax.config import PRESETS
+from xrl_jax.config import PRESETS, ConfigError, parse_overrides
 
 ROOT = Path(__file__).resolve().parents[1]  # the working tree that `compare` times against another commit
 # What `bench.py env` drives with one random action per env (envs.registry's single-agent names).
@@ -202,10 +202,72 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     """Refuse what the argument types cannot see, in one line, before anything is compiled."""
     if args.command == "intersection" and not all(n <= 8 for n in args.vehicles):
         parser.error("--vehicles must lie in 1..8")
+    try:  # compare passes its --set on only when given
+        parse_overrides(getattr(args, "set", []))
+    except ConfigError as err:
+        parser.error(str(err))
     if args.command != "train":
         return
     if any(seeds % devices_for(seeds, n) for seeds in args.seeds for n in args.devices):
         parser.error("every --seeds value must be a multiple of every --devices value")
+
+
+def results(parser: argparse.ArgumentParser, args: argparse.Namespace):
+    """The sub-command's measurements (``main`` split the host first, where it does)."""
+    # Imported once the host is split: importing the envs may start the backend.
+    import jax
+
+    from xrl_jax import benchmarks as B
+    from xrl_jax.benchmarks.occupancy import rollout_observations
+
+    if args.command == "env":
+        return [
+            B.bench_env(scenario, batch, args.steps, args.repeats)
+            for scenario in args.scenarios
+            for batch in args.batches
+        ]
+    if args.command == "intersection":
+        return [
+            B.bench_intersection(n, batch, args.steps, args.repeats, args.discrete)
+            for n in args.vehicles
+            for batch in args.batches
+        ]
+    if args.command == "train":
+        on_cpu = jax.default_backend() == "cpu"  # elsewhere auto is one accelerator
+        counts = {
+            (s, n): devices_for(s, n) if on_cpu or n != "auto" else 1
+            for s in args.seeds
+            for n in args.devices
+        }
+        if max(counts.values()) > len(jax.devices()):
+            parser.error(f"--devices {max(counts.values())}: only {len(jax.devices())} device(s) here")
+        return [
+            B.bench_train(args.env, algo, seeds, width, args.chunks, args.preset, args.set, counts[seeds, n])
+            for algo in args.algos
+            for width in args.widths
+            for seeds in args.seeds
+            for n in args.devices
+        ]
+    if args.command == "update":
+        observations = rollout_observations(args.env)["observations"]
+        return [
+            B.bench_update(
+                args.env, algo, width, seeds, max(2, 40 * 64 // (width * seeds)),  # each call ~1 s or more
+                args.repeats, observations, args.preset, args.batch_size,
+            )
+            for width in args.widths
+            for seeds in args.seeds
+            for algo in args.algos
+        ]  # fmt: skip
+    if args.command == "tracks":
+        return [B.bench_tracks(seeds, args.count, args.repeats) for seeds in args.seeds]
+    if args.command == "matmul":
+        return B.bench_matmul(args.size)
+    if args.command == "profile":
+        return B.bench_profile(
+            args.env, args.algo, args.seeds, args.width, args.preset, args.set, depth=args.depth
+        )
+    raise AssertionError(f"bench.py: no measurement for {args.command!r}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -219,60 +281,13 @@ def main(argv: list[str] | None = None) -> int:
         from xrl_jax.train import cpu_devices
 
         cpu_devices.split_cpu_host(max(devices_for(seeds, n) for seeds in args.seeds for n in args.devices))
-    # Imported once the host is split: importing the envs may start the backend.
-    import jax
-
     from xrl_jax import benchmarks as B
-    from xrl_jax.benchmarks.occupancy import rollout_observations
 
     report: dict = {"machine": B.machine_info(), "command": args.command}
-    if args.command == "env":
-        report["results"] = [
-            B.bench_env(scenario, batch, args.steps, args.repeats)
-            for scenario in args.scenarios
-            for batch in args.batches
-        ]
-    elif args.command == "intersection":
-        report["results"] = [
-            B.bench_intersection(n, batch, args.steps, args.repeats, args.discrete)
-            for n in args.vehicles
-            for batch in args.batches
-        ]
-    elif args.command == "train":
-        on_cpu = jax.default_backend() == "cpu"  # elsewhere auto is one accelerator
-        counts = {
-            (s, n): devices_for(s, n) if on_cpu or n != "auto" else 1
-            for s in args.seeds
-            for n in args.devices
-        }
-        if max(counts.values()) > len(jax.devices()):
-            parser.error(f"--devices {max(counts.values())}: only {len(jax.devices())} device(s) here")
-        report["results"] = [
-            B.bench_train(args.env, algo, seeds, width, args.chunks, args.preset, args.set, counts[seeds, n])
-            for algo in args.algos
-            for width in args.widths
-            for seeds in args.seeds
-            for n in args.devices
-        ]
-    elif args.command == "update":
-        observations = rollout_observations(args.env)["observations"]
-        report["results"] = [
-            B.bench_update(
-                args.env, algo, width, seeds, max(2, 40 * 64 // (width * seeds)),  # each call ~1 s or more
-                args.repeats, observations, args.preset, args.batch_size,
-            )
-            for width in args.widths
-            for seeds in args.seeds
-            for algo in args.algos
-        ]  # fmt: skip
-    elif args.command == "tracks":
-        report["results"] = [B.bench_tracks(seeds, args.count, args.repeats) for seeds in args.seeds]
-    elif args.command == "matmul":
-        report["results"] = B.bench_matmul(args.size)
-    elif args.command == "profile":
-        report["results"] = B.bench_profile(
-            args.env, args.algo, args.seeds, args.width, args.preset, args.set, depth=args.depth
-        )
+    try:  # a --set naming no setting, or a value it cannot take: one line, before anything compiles
+        report["results"] = results(parser, args)
+    except ConfigError as err:
+        return fail("bench.py", err)
     json.dump(report, sys.stdout, indent=2)
     print()
     return 0

@@ -35,6 +35,10 @@ def bench():
         (["env", "--scenarios", "intersection"], "--scenarios: invalid choice: 'intersection'"),
         (["profile", "--seeds", "0"], "--seeds: expected a positive integer, got 0"),
         (["profile", "--algo", "ppo"], "--algo: invalid choice: 'ppo'"),
+        (["profile", "--set", "foo"], "--set expects KEY=VALUE, got 'foo'"),  # were tracebacks
+        (["train", "--set", "log_interval"], "--set expects KEY=VALUE, got 'log_interval'"),
+        (["profile", "--set", "foo=1"], "unknown setting 'foo'"),
+        (["train", "--seeds", "1", "--set", "log_interval=x"], "log_interval"),
     ],
 )
 def test_bench_refuses_bad_input_in_one_line(bench, capsys, args, message):

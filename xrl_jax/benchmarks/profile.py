@@ -74,11 +74,11 @@ def _read_trace(folder: Path) -> list[dict]:
     return data["traceEvents"] if isinstance(data, dict) else data
 
 
-def profile_chunk(trainer, state, start_vector_step: int, depth: int = 3) -> dict:
+def profile_chunk(trainer, state, start_vector_step: int, depth: int = 3) -> tuple[object, dict]:
     """Trace one chunk of ``trainer`` from ``state`` (compiled first, so the trace holds execution
-    only) and return the time per model part; the state is donated, the new one returned."""
+    only); returns the new state (the old one is donated) and the time per model part."""
     start = np.int32(start_vector_step)
-    compiled = trainer.chunk.lower(state, start).compile()
+    compiled = trainer.chunk.lower(state, start).compile()  # the jitted chunk reuses this executable
     sources = instruction_sources(compiled.as_text())
     with tempfile.TemporaryDirectory() as folder:
         tic = time.perf_counter()
@@ -87,8 +87,7 @@ def profile_chunk(trainer, state, start_vector_step: int, depth: int = 3) -> dic
             jax.block_until_ready(report)
         seconds = time.perf_counter() - tic
         op_us = op_times(_read_trace(Path(folder)))
-    return {
-        "state": state,
+    return state, {
         "chunk_s_traced": seconds,
         "ops_ms": sum(op_us.values()) / 1e3,
         "parts": time_by_part(op_us, sources, depth),
@@ -104,21 +103,13 @@ def bench_profile(env: str, algo: str, seeds: int, width: int | None, preset_nam
     """The time per model part of one updating chunk of ``env``/``algo`` at ``preset_name`` (the
     chunk after the first, which runs the warm-up), ``seeds`` members on ``devices`` devices."""
     from xrl_jax import train
+    from xrl_jax.benchmarks.updates import short_run_config
 
-    sets = {"log_interval": "1000", "warmup_steps": "256", **dict(item.split("=", 1) for item in overrides)}
-    sets.setdefault("eval_interval", sets["log_interval"])
-    sets.setdefault("checkpoint_interval", sets["log_interval"])
-    if width is not None:
-        sets.update(actor_width=str(width), critic_width=str(width))
-    steps = int(sets["log_interval"]) * 3
-    cfg = train.resolve_config(env, algo, preset_name, num_seeds=seeds, total_steps=steps, overrides=sets)
-    cfg = cfg.replace(buffer_size=max(cfg.batch_size, min(cfg.buffer_size, steps)))
+    cfg = short_run_config(env, algo, preset_name, seeds, width, overrides, chunks=3, log_interval=1000)
     trainer = train.make_trainer(cfg, devices=jax.devices()[:devices])
     state = trainer.init(0, range(seeds))
     state, report = trainer.chunk(state, np.int32(0))
     jax.block_until_ready(report)
-    profile = profile_chunk(trainer, state, cfg.chunk_vector_steps, depth)
-    profile.pop("state")
-    width = width or cfg.agent.actor_width
-    shape = {"env": env, "algo": algo, "seeds": seeds, "devices": devices, "width": width}
+    _, profile = profile_chunk(trainer, state, cfg.chunk_vector_steps, depth)
+    shape = {"env": env, "algo": algo, "seeds": seeds, "devices": devices, "width": cfg.agent.actor_width}
     return {**shape, "vector_steps": cfg.chunk_vector_steps, **profile}

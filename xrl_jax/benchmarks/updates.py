@@ -21,7 +21,7 @@ from xrl_jax.benchmarks.timing import (
     timed_alternately,
     update_flops,
 )
-from xrl_jax.config import preset, preset_train_fields
+from xrl_jax.config import parse_overrides, preset, preset_train_fields
 from xrl_jax.networks import ENV_OBSERVATIONS, dummy_observation
 from xrl_jax.sets import MEMBERS_AXIS
 
@@ -124,6 +124,34 @@ def _stacked_batches(observations: dict, batch_size: int, agent: Agent, count: i
     return jax.tree.map(lambda *xs: jnp.stack(xs), *batches)
 
 
+def short_run_config(
+    env: str,
+    algo: str,
+    preset_name: str,
+    seeds: int,
+    width: int | None,
+    overrides: list,
+    chunks: int,
+    log_interval: int,
+    kept_chunks: int | None = None,
+):
+    """A benchmark's short run: ``chunks`` chunks of ``log_interval`` steps per seed (a ``--set
+    log_interval`` wins), a warm-up of 256, evaluation and checkpoints every chunk (between chunks, not
+    timed: any preset fits), the buffer no larger than the first ``kept_chunks`` chunks (all by
+    default) fill. A malformed or unknown ``KEY=VALUE`` raises :class:`ConfigError` (one line)."""
+    sets = {"log_interval": str(log_interval), "warmup_steps": "256", **parse_overrides(overrides)}
+    sets.setdefault("eval_interval", sets["log_interval"])
+    sets.setdefault("checkpoint_interval", sets["log_interval"])
+    if width is not None:
+        sets.update(actor_width=str(width), critic_width=str(width))
+    interval = train.resolve_config(env, algo, preset_name, overrides=sets).log_interval
+    cfg = train.resolve_config(
+        env, algo, preset_name, num_seeds=seeds, total_steps=interval * chunks, overrides=sets
+    )
+    kept = interval * (chunks if kept_chunks is None else kept_chunks)
+    return cfg.replace(buffer_size=max(cfg.batch_size, min(cfg.buffer_size, kept)))
+
+
 def bench_train(
     env: str,
     algo: str,
@@ -140,20 +168,13 @@ def bench_train(
     Times ``chunks`` compiled chunks after the first (which carries compilation and the warm-up);
     reports the compile time, the per-seed memory estimate and the peak memory.
     """
-    sets = {"log_interval": "2000", "warmup_steps": "256", **dict(item.split("=", 1) for item in overrides)}
-    # Evaluation and checkpoints happen between chunks (not timed): every chunk, so any preset fits.
-    sets.setdefault("eval_interval", sets["log_interval"])
-    sets.setdefault("checkpoint_interval", sets["log_interval"])
-    if width is not None:
-        sets.update(actor_width=str(width), critic_width=str(width))
-    log_interval = int(sets["log_interval"])
-    steps = log_interval * (chunks + 1)
     # On the Intersection the run's last step pays every update its members still owe: a run longer by
     # one chunk keeps that settlement out of the timed chunks, which then run as a long run's do.
     last = train.scenario_kind(train.resolve_config(env, algo, preset_name)).steps_read_run_length
-    run_steps = steps + log_interval * last
-    cfg = train.resolve_config(env, algo, preset_name, num_seeds=seeds, total_steps=run_steps, overrides=sets)
-    cfg = cfg.replace(buffer_size=max(cfg.batch_size, min(cfg.buffer_size, steps)))
+    cfg = short_run_config(
+        env, algo, preset_name, seeds, width, overrides, chunks + 1 + last, 2000, kept_chunks=chunks + 1
+    )
+    log_interval = cfg.log_interval
     start = time.perf_counter()
     trainer = train.make_trainer(cfg, devices=jax.devices()[:devices])
     state = jax.block_until_ready(trainer.init(0, range(seeds)))
