@@ -72,6 +72,7 @@ def test_on_tracking_the_state_reading_equals_the_documented_observation_reading
     assert len(np.unique(ours[:, 1])) == 2 and np.any(ours[:, 2] > 0)  # it accelerates and brakes
 
 
+@pytest.mark.slow  # ~20 s: the controller's CLI end to end over a bank
 def test_it_drives_country_road_as_tracking_and_the_cli_writes_the_scores(tmp_path):
     """The CLI runs in a child process compiled as a user's run is (tests/conftest.py compiles the
     tests' programs another way): "the same drive" in two separately compiled programs rests on both

@@ -266,7 +266,7 @@ if __name__ == "__main__":
     _worker(sys.argv[1], sys.argv[2])
 
 
-@pytest.mark.parametrize("output", ["reward", "observation"])
+@pytest.mark.parametrize("output", ["reward", pytest.param("observation", marks=pytest.mark.slow)])
 def test_an_env_returning_nan_is_named_not_the_learning_rates(tmp_path, output):
     """Issue 48: an env whose step returns NaN was reported as a loss divergence with advice to lower
     the learning rates (the NaN reward reached the critic once warm-up ended). The chunk's health

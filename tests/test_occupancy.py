@@ -131,7 +131,7 @@ def test_curriculum_envs_take_the_curriculums_shares():
             occupancy.curriculum_envs(bad)
 
 
-@pytest.mark.parametrize("policy", ["scripted", "random"])
+@pytest.mark.parametrize("policy", [pytest.param("scripted", marks=pytest.mark.slow), "random"])  # ~15 s each
 def test_intersection_rollout_keeps_the_observations_of_vehicles_that_acted(policy):
     out = occupancy.rollout_observations("intersection", num_envs=15, steps=40, policy=policy)
     objects = out["observations"]["vehicles_set"]

@@ -104,6 +104,7 @@ def test_dry_run_counts_cpu_hours_by_this_machines_calibrations(paper, capsys, t
     assert row[-2] == "FLOP"
 
 
+@pytest.mark.slow  # ~20 s: a whole campaign run; the dry-run's tests stay in the default tier
 def test_one_run_end_to_end_then_skipped_when_done(paper, capsys, tmp_path):
     out = tmp_path / "campaign"
     args = [

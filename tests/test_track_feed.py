@@ -78,6 +78,7 @@ def _drive(feed_functions, ending, steps, refill_every=None, refill_count=4):
     return np.array(started), feed, states
 
 
+@pytest.mark.slow  # ~20 s; the trainer's fresh-track test (tests/test_train.py) stays in the default tier
 def test_episodes_take_the_streams_tracks_in_order_and_a_refill_schedule_changes_nothing(feed_functions):
     """Three envs end every step (a NaN action), one drives on: with refills after every step or every
     other step the new episodes get tracks 0, 1, 2, ... of the stream, each exactly once."""
@@ -139,6 +140,7 @@ def test_bad_arguments_are_refused(env_and_template, feed_functions):
         writable(feed, CAPACITY + 1)
 
 
+@pytest.mark.slow  # ~20 s: a long drive compared step by step
 def test_the_vector_env_drives_exactly_as_the_feed_functions(env_and_template, feed_functions):
     """:class:`FreshTrackEnvs` is the functions above behind the reset/step interface of any vector
     env: its reset key is the feed's stream, its state the envs' states and the feed, and its refill
