@@ -102,6 +102,10 @@ def test_improvement_probability_is_computed_as_by_hand(folders):
         found["estimate"] == pytest.approx(9 / 16) == pytest.approx(stats.probability_of_improvement(xs, ys))
     )
     assert found["low"] <= found["estimate"] <= found["high"] and found["seeds"] == [4, 4]
+    # The test beside it: U = 9 is near its centre 8; of the 70 splits of the 8 seeds into two groups
+    # of 4, 31 have U >= 9, so p = 2 * 31 / 70 (the enumeration: tests/test_stats.py).
+    assert found["p_value"] == pytest.approx(62 / 70)
+    assert found["coverage_without_difference"] == stats.improvement_interval_coverage(4, 4)
     (road,) = improvements(runs, "country_road")
     assert road["estimate"] == 1.0 and road["seeds"] == [3, 4]  # the incomplete run's 3 final seeds
 
@@ -149,6 +153,30 @@ def test_env_figure_gives_each_agent_one_colour_and_shows_a_one_point_curve(tmp_
     assert to_hex(bar.lines[0].get_color()) == colours["xdsac"] != colours["dsac"]
     [one_point] = [line for line in curves.get_lines() if line.get_label() == "dsac"]
     assert len(one_point.get_xdata()) == 1 and one_point.get_marker() not in ("None", "", None)
+
+
+def test_an_agent_has_one_colour_in_every_figure_and_legends_sit_outside_the_axes(tmp_path):
+    """Issue 50: an agent's colour changed from figure to figure (the n-th run drawn took the n-th
+    colour), and legends inside the axes hid curve segments. Now the colour is the agent's, whatever
+    else is drawn, a second run of one agent keeps it with another line style, and the one legend is
+    the figure's."""
+    from matplotlib.colors import to_hex
+
+    from xrl_jax.report_figures import AGENT_COLOURS
+
+    xdsac = fake_run(tmp_path / "xdsac", "country_road", "xdsac", "quick", [3.0, 4.0])
+    dsac = fake_run(tmp_path / "dsac", "country_road", "dsac", "quick", [1.0, 2.0])
+    again = fake_run(tmp_path / "xdsac-2", "country_road", "xdsac", "smoke", [5.0, 6.0])
+    for runs in ([xdsac], [dsac, xdsac], [dsac, xdsac, again]):
+        figure = env_figure(read_runs(runs), "country_road")
+        lines = figure.axes[2].get_lines()
+        assert all(ax.get_legend() is None for ax in figure.axes) and len(figure.legends) == 1
+        by_algo = {}
+        for line in lines:
+            by_algo.setdefault(line.get_label().split()[0], set()).add(to_hex(line.get_color()))
+        assert by_algo == {algo: {to_hex(AGENT_COLOURS[algo])} for algo in by_algo}
+    styles = sorted(line.get_linestyle() for line in lines if line.get_label().startswith("xdsac"))
+    assert styles == ["-", "--"]
 
 
 @pytest.mark.parametrize("where", ["an existing file", "below a file"])

@@ -25,6 +25,7 @@ LAYERS = [
     {"evaluation"},
     {"runs"},  # the results folder: the trainer writes it
     {"train"},
+    {"report_figures"},
     {"report", "explain", "benchmarks"},
     {"campaign"},
 ]

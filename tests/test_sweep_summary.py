@@ -3,6 +3,7 @@ incomplete members, the table and the sweep figure; a plain run's summary as bef
 run folders written by hand: no training, no jit."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -56,7 +57,8 @@ def write_run(out, cfg, skip=(), final_steps=None):
 def expected_interval(scores):
     scores = np.array(scores, np.float64)
     ci = stats.stratified_bootstrap_ci(scores, stats.iqm, confidence=0.95)
-    return {**ci.as_dict(), "mean": float(scores.mean()), "n": int(scores.size)}
+    coverage = stats.iqm_interval_coverage(scores.size)
+    return {**ci.as_dict(), "coverage": coverage, "mean": float(scores.mean()), "n": int(scores.size)}
 
 
 def test_each_point_is_summarised_over_its_own_seeds_only(tmp_path):
@@ -244,7 +246,12 @@ def test_a_two_field_sweep_plots_one_line_per_other_value(tmp_path):
     summary = summarize_run(tmp_path, cfg)
     assert summary["sweep"]["fields"] == ["kappa", "gamma"] and len(summary["sweep"]["points"]) == 6
     assert summary["sweep"]["points"][3]["values"] == {"kappa": 0.0, "gamma": 0.99}
-    assert len(format_table(summary).splitlines()) == 2 + 6 + 1
+    table = format_table(summary)
+    assert len(table.splitlines()) == 2 + 6 + 1 + 1  # title, header, points, coverage, tracks
+    # The interval's coverage at the points' 2 seeds: [lowest, highest], 1 - 2 * 0.5**2 = 50 %, by a
+    # Monte Carlo of 2,000 trials (4 standard errors: 4.5 points; tests/test_stats.py).
+    (held,) = re.findall(r"at 2 seeds (\d+) %", table)
+    assert abs(int(held) - 50) <= 5
     assert plot_sweep(summary, tmp_path / "sweep.png").read_bytes()[:8] == PNG
 
 

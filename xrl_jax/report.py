@@ -22,16 +22,22 @@ import numpy as np
 from xrl_jax import stats
 from xrl_jax.config import scenario
 from xrl_jax.evaluation import evaluate_yardstick, has_yardstick
+from xrl_jax.report_figures import (
+    ALGO_ORDER,
+    BASELINES,
+    env_figure,
+    pairs_figure,
+    table_metrics,
+    yardstick_name,
+)
 from xrl_jax.runs.folder import RunFolderError, first_nonfinite_metric, read_run_config
 from xrl_jax.runs.kept import distinct_runs, keep_records, protocol_groups
-from xrl_jax.runs.plots import format_step_axis, plot_sweep
+from xrl_jax.runs.plots import plot_sweep
 from xrl_jax.runs.summary import summarize_pooled, summarize_run, summary_metrics
-from xrl_jax.runs.tables import curve_label
+from xrl_jax.runs.tables import coverage_note
 from xrl_jax.train.kinds import scenario_kind
 
 PAPER_RESULTS = Path(__file__).resolve().parents[1] / "docs" / "paper_results.json"
-BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
-ALGO_ORDER = ("sac", "xsac", "dsac", "xdsac")
 
 
 class ReportError(ValueError):
@@ -105,16 +111,6 @@ def paper_values() -> dict[tuple[str, str, str], dict]:
     """The paper's published numbers by (env, algo, metric) (docs/paper_results.json)."""
     data = json.loads(PAPER_RESULTS.read_text())
     return {(r["env"], r["algo"], r["metric"]): r for r in data["results"]}
-
-
-def table_metrics(env: str) -> tuple[tuple[str, str], ...]:
-    """The (key, label) pairs of ``env``'s table; the first two are its figure's (the paper's Fig. 5/6:
-    return and early-termination rate; on the Intersection Fig. 7's trips and early terminations)."""
-    return scenario(env).table_metrics
-
-
-def yardstick_name(env: str, speed: float) -> str:
-    return f"{scenario(env).yardstick} ({speed:g} m/s)"
 
 
 def _cell(agg: dict | None) -> str:
@@ -230,7 +226,9 @@ def early_step(x: Run, y: Run, fraction: float) -> int | None:
 def improvements(
     runs: list[Run], env: str, metric: str | None = None, early_fraction: float | None = None
 ) -> list[dict[str, Any]]:
-    """P(X > Y) with its 95 % bootstrap CI of each explainable agent X against its baseline Y, for
+    """P(X > Y) with its 95 % bootstrap CI, the Mann-Whitney U test's two-sided p-value (``p_value``) and
+    the share of samples without a difference whose interval holds 0.5 at these seed counts
+    (``coverage_without_difference``), of each explainable agent X against its baseline Y, for
     every pair of complete-enough plain runs of ``env`` with the same preset, on each seed's final
     ``metric`` (default: each of :func:`improvement_metrics`) and, with ``early_fraction``, also at the shared
     evaluation step nearest that fraction of the run (:func:`early_step`; ``"step"`` in the record)."""
@@ -248,100 +246,12 @@ def improvements(
                     if xs.size == 0 or ys.size == 0:
                         continue
                     interval = stats.probability_of_improvement_ci(xs, ys)
+                    held = stats.improvement_interval_coverage(int(xs.size), int(ys.size))
                     out.append({"x": x.label, "y": y.label, "metric": name, "step": step or "final",
-                                **interval.as_dict(), "seeds": [int(xs.size), int(ys.size)]})  # fmt: skip
+                                **interval.as_dict(), "seeds": [int(xs.size), int(ys.size)],
+                                "p_value": stats.improvement_test(xs, ys),
+                                "coverage_without_difference": held})  # fmt: skip
     return out
-
-
-def _plain_runs(runs: list[Run], env: str) -> list[Run]:
-    """The env's runs that are not sweeps and have a learning curve: the ones the figures draw."""
-    return [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["curve"]]
-
-
-def _draw_curve(ax, run: Run, key: str, colour: str, label: str) -> None:
-    """``run``'s curve of ``key``: IQM line, 95 % CI band, markers (a one-point curve shows too)."""
-    points = [p for p in run.summary["curve"] if key in p]
-    steps = [p["step"] for p in points]
-    ax.plot(steps, [p[key]["estimate"] for p in points], color=colour, marker="o", markersize=3, label=label)
-    ax.fill_between(steps, [p[key]["low"] for p in points], [p[key]["high"] for p in points],
-                    color=colour, alpha=0.2, linewidth=0)  # fmt: skip
-
-
-def env_figure(runs: list[Run], env: str, references: list[dict] | None = None):
-    """Final performance per agent (IQM and 95 % CI, the paper's Fig. 5/6) and the learning curves
-    (IQM line and CI band per agent, Fig. 7) of the env's plain runs, one colour per agent in all
-    four panels; each of ``references`` (the hand controller's results) is a dashed line."""
-    from matplotlib.figure import Figure
-
-    plain = _plain_runs(runs, env)
-    if not plain:
-        return None
-    metrics = table_metrics(env)[:2]
-    algos = [r.cfg.algo for r in plain]
-    # The agent's name says it all when each agent has one run here; otherwise preset and folder too.
-    labels = [r.cfg.algo if algos.count(r.cfg.algo) == 1 else r.label for r in plain]
-    figure = Figure(figsize=(10.0, 6.5), layout="constrained")
-    axes = figure.subplots(2, 2)
-    for column, (key, label) in enumerate(metrics):
-        bars, curves = axes[0][column], axes[1][column]
-        names = []  # the agents with a final evaluation (an unfinished run has a curve only)
-        for index, (run, label_of_run) in enumerate(zip(plain, labels, strict=True)):
-            colour = f"C{index}"
-            agg = run.summary["aggregate"].get(key)
-            if agg:
-                error = [[agg["estimate"] - agg["low"]], [agg["high"] - agg["estimate"]]]
-                bars.errorbar(agg["estimate"], len(names), xerr=error, fmt="o", capsize=4, color=colour)
-                names.append(label_of_run)
-            _draw_curve(curves, run, key, colour, label_of_run)
-        if names:
-            bars.set_yticks(range(len(names)), names)
-        for reference in references or []:
-            name = yardstick_name(env, reference["target_speed"])
-            bars.axvline(reference[key], color="black", linestyle="--", linewidth=1, label=name)
-            curves.axhline(reference[key], color="black", linestyle="--", linewidth=1, label=name)
-        bars.set_title(f"{label} (IQM, 95 % CI)")
-        curves.set_title(curve_label(label))
-        curves.set_xlabel("environment steps per seed")
-        format_step_axis(curves)
-        curves.grid(alpha=0.3)
-        bars.grid(alpha=0.3)
-    axes[1][0].legend(fontsize="small")
-    figure.suptitle(env)
-    return figure
-
-
-def pairs_figure(runs: list[Run], env: str, references: list[dict] | None = None):
-    """The paper's Fig. 7 layout: one row per pair of an explainable agent and its baseline (XSAC
-    against SAC, XDSAC against DSAC), one column per figure metric (on the Intersection, completed
-    trips and early terminations), each run's learning curve as IQM with its 95 % CI band, and the
-    yardstick of ``references`` as a dashed line. None if no pair has a curve."""
-    from matplotlib.figure import Figure
-
-    plain = _plain_runs(runs, env)
-    pairs = [(x, y) for x in plain for y in plain
-             if BASELINES.get(x.cfg.algo) == y.cfg.algo and x.cfg.preset == y.cfg.preset]  # fmt: skip
-    if not pairs:
-        return None
-    metrics = table_metrics(env)[:2]
-    figure = Figure(figsize=(10.0, 3.2 * len(pairs)), layout="constrained")
-    axes = figure.subplots(len(pairs), len(metrics), squeeze=False)
-    for row, pair in enumerate(pairs):
-        for column, (key, label) in enumerate(metrics):
-            ax = axes[row][column]
-            for colour, run in zip(("C0", "C3"), pair, strict=True):
-                first = next((p for p in run.summary["curve"] if key in p), None)
-                seeds = len(first[key]["per_seed"]) if first else 0
-                _draw_curve(ax, run, key, colour, f"{run.cfg.algo} ({seeds} seeds)")
-            for reference in references or []:
-                ax.axhline(reference[key], color="black", linestyle="--", linewidth=1,
-                           label=yardstick_name(env, reference["target_speed"]))  # fmt: skip
-            ax.set_title(f"{curve_label(label)} (IQM, 95 % CI)")
-            ax.set_xlabel("environment steps per seed")
-            format_step_axis(ax)
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize="small")
-    figure.suptitle(f"{env}: each explainable agent against its baseline")
-    return figure
 
 
 EARLY_FRACTION = 0.25  # "early stages of training" (Fig. 7): the evaluation nearest a quarter of the run
@@ -385,6 +295,24 @@ def _make_report_folder(out: Path) -> None:
         raise ReportError(f"cannot create the report folder --out {out}: {err.strerror or err}") from None
 
 
+def _interval_paragraph(runs: list[Run]) -> list[str]:
+    """What the report's intervals are and what they cover at the seed counts of ``runs``."""
+    aggregates = [agg for run in runs if not run.is_sweep for agg in run.summary["aggregate"].values()]
+    aggregates += [agg for run in runs if run.is_sweep for point in run.summary["sweep"]["points"]
+                   for agg in point["aggregate"].values()]  # fmt: skip
+    note = coverage_note(aggregates)
+    if note is None:
+        return []
+    return [
+        f"{note} (`xrl_jax.stats.iqm_interval_coverage`: below 5 seeds the interval is [lowest, highest "
+        "seed] and holds the median 1 - 2^(1-n) of the time). P(X > Y) is the chance that a seed of X "
+        "beats a seed of Y, with its percentile bootstrap interval (X's and Y's seeds resampled apart); "
+        "beside it the two-sided Mann-Whitney U test's p-value (exact over every split of the seeds up to "
+        "20,000 splits), the test behind any \"difference\" said here, and the share of samples without a "
+        "difference whose interval holds 0.5 at those seed counts."
+    ]
+
+
 def _write_report(
     runs: list[Run], out: Path, controller_speed, controller: bool, early_fraction: float
 ) -> Path:
@@ -392,7 +320,7 @@ def _write_report(
              "IQM with its 95 % stratified bootstrap CI over seeds (final evaluation). The paper's value "
              "stands beside a run that used its protocol (`--preset paper`); other presets are shorter "
              "runs and are not comparable with it. Source of the paper's numbers: docs/paper_results.json.",
-             ""]  # fmt: skip
+             "", *_interval_paragraph(runs), ""]  # fmt: skip
     all_improvements, all_references = [], []
     for env in sorted({r.cfg.env for r in runs}):
         lines += [f"## {env}", ""]
@@ -422,7 +350,12 @@ def _write_report(
             seeds = f"{item['seeds'][0]} vs {item['seeds'][1]} seeds"
             when = "final evaluation" if item["step"] == "final" else f"evaluation at step {item['step']:,}"
             metric = labels[item["metric"]].removeprefix("final ")
-            lines.append(f"- P({item['x']} > {item['y']}) on {metric}, {when}: {interval} ({seeds})")
+            verdict = ", a difference at the 5 % level" if item["p_value"] < 0.05 else ""
+            test = f"Mann-Whitney p = {item['p_value']:.2g}{verdict}"
+            held = 100 * item["coverage_without_difference"]
+            held = f"the interval holds 0.5 without a difference {held:.0f} %"
+            lines.append(f"- P({item['x']} > {item['y']}) on {metric}, {when}: {interval} "
+                         f"({seeds}; {test}; {held})")  # fmt: skip
         finished = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["aggregate"]]
         for run in (r for r in runs if r.cfg.env == env and r.is_sweep):
             baseline = next((b for b in finished if b.cfg.algo == BASELINES.get(run.cfg.algo)), None)

@@ -34,9 +34,11 @@ def _member_evaluations(out: Path, cfg) -> list[dict[int, dict]]:
 
 
 def _aggregate(scores: np.ndarray) -> dict[str, Any]:
-    """IQM with its 95 % stratified bootstrap CI over seeds, the mean and the number of seeds."""
+    """IQM with its 95 % stratified bootstrap CI over seeds, the interval's actual coverage at this
+    many seeds (:func:`~xrl_jax.stats.iqm_interval_coverage`), the mean and the number of seeds."""
     interval = stats.stratified_bootstrap_ci(scores, stats.iqm, confidence=0.95)
-    return {**interval.as_dict(), "mean": float(scores.mean()), "n": int(scores.size)}
+    coverage = stats.iqm_interval_coverage(int(scores.size), interval.confidence)
+    return {**interval.as_dict(), "coverage": coverage, "mean": float(scores.mean()), "n": int(scores.size)}
 
 
 def aggregate_metrics(rows: list[dict], env: str) -> dict[str, Any]:
