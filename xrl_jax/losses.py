@@ -1,4 +1,6 @@
-"""Pure loss functions of SAC, discrete SAC, XSAC and XDSAC (docs/algorithms.md §1–§3).
+"""Pure loss functions of SAC, discrete SAC, XSAC and XDSAC (docs/algorithms.md §1–§3), and of PPO
+and its mixture policy XPPO (generalised advantage estimation, the clipped surrogate, the clipped
+value loss, the mixture's log-ratio; the last section).
 
 Everything here works on arrays that the networks already produced, so each equation can be
 checked in closed form on tiny hand-made inputs. The agents (``agents.py``) wire networks to
@@ -21,7 +23,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from xrl_jax.distributions import clipped_entropy
+from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture, clipped_entropy
 
 # ------------------------------------------------------------------------------------------------
 # Elementary pieces
@@ -239,3 +241,131 @@ def entropy_coef_loss(
 def polyak_update(target_params, online_params, tau: jax.Array):
     """θ' ← (1 − τ)·θ' + τ·θ for every leaf (τ = 0.005 in every config)."""
     return jax.tree_util.tree_map(lambda t, o: (1.0 - tau) * t + tau * o, target_params, online_params)
+
+
+# ------------------------------------------------------------------------------------------------
+# PPO and XPPO (on-policy): advantages, the clipped surrogate, the value loss, the mixture's ratio
+# ------------------------------------------------------------------------------------------------
+
+
+def gae(
+    rewards: jax.Array,
+    values: jax.Array,
+    next_values: jax.Array,
+    terminated: jax.Array,
+    truncated: jax.Array,
+    gamma: float | jax.Array,
+    lam: float | jax.Array,
+) -> tuple[jax.Array, jax.Array]:
+    """Generalised advantage estimation over a time-major rollout (T, ...): returns (advantages,
+    value targets = advantages + values).
+
+    δ_t = r_t + γ·(1 − terminated_t)·V'_t − V_t and A_t = δ_t + γλ·(1 − done_t)·A_{t+1}, done_t =
+    terminated_t or truncated_t. ``next_values`` V'_t is the value of step t's own next observation,
+    the episode's last one where it ended (not the reset observation an auto-reset env returns
+    after it): so a truncated step bootstraps from where the car was, a terminated one from
+    nothing, and neither passes advantages across the episode boundary. The last step's A_{T+1} is 0:
+    V'_T bootstraps what the rollout did not see.
+    """
+    not_terminated = 1.0 - terminated.astype(rewards.dtype)
+    continues = not_terminated * (1.0 - truncated.astype(rewards.dtype))
+    deltas = rewards + gamma * not_terminated * next_values - values
+
+    def backwards(later_advantage, step):
+        delta, carry_on = step
+        advantage = delta + gamma * lam * carry_on * later_advantage
+        return advantage, advantage
+
+    _, advantages = jax.lax.scan(backwards, jnp.zeros_like(deltas[0]), (deltas, continues), reverse=True)
+    return advantages, advantages + values
+
+
+def normalize_advantages(advantages: jax.Array, weight: jax.Array | None = None) -> jax.Array:
+    """(A − mean) / (std + 1e-8) over the minibatch (its used entries where ``weight`` is given),
+    PPO's usual per-minibatch normalisation. A constant minibatch gives zeros, not NaN."""
+    weight = jnp.ones_like(advantages) if weight is None else weight.astype(advantages.dtype)
+    count = jnp.maximum(jnp.sum(weight), 1.0)
+    mean = jnp.sum(weight * advantages) / count
+    std = jnp.sqrt(jnp.sum(weight * jnp.square(advantages - mean)) / count)
+    return (advantages - mean) / (std + 1e-8)
+
+
+def mixture_log_ratio(policy, sample: jax.Array, old_log_prob: jax.Array) -> jax.Array:
+    """log π_new(a|s) − log π_old(a|s) of a stored rollout sample under the current policy: the
+    importance ratio's log, exact for both mixtures. ``sample`` is the action index for a
+    :class:`CategoricalMixture` (its log π is a logsumexp over objects), the pre-squash point u for a
+    :class:`SquashedGaussianMixture` (its density at u; the tanh Jacobian is equal in both terms and
+    cancels, which atanh of a saturated action could not guarantee). A one-object mixture is PPO's
+    plain policy."""
+    if isinstance(policy, CategoricalMixture):
+        return policy.log_prob(sample) - old_log_prob
+    if isinstance(policy, SquashedGaussianMixture):
+        return policy.log_prob_pre_squash(sample) - old_log_prob
+    kind = type(policy).__name__
+    raise TypeError(f"mixture_log_ratio takes a CategoricalMixture or SquashedGaussianMixture, got {kind}")
+
+
+def ppo_policy_loss(
+    log_ratio: jax.Array,
+    advantages: jax.Array,
+    clip_eps: float | jax.Array,
+    weight: jax.Array | None = None,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """PPO's clipped surrogate, −mean[min(ρ·A, clip(ρ, 1 − ε, 1 + ε)·A)], ρ = exp(log_ratio), with
+    the share of clipped samples and the approximate KL(old‖new) = mean[(ρ − 1) − log ρ] (≥ 0)."""
+    ratio = jnp.exp(log_ratio)
+    unclipped = ratio * advantages
+    clipped = jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages
+    loss = -_mean(jnp.minimum(unclipped, clipped), weight)
+    clipped_share = _mean((jnp.abs(ratio - 1.0) > clip_eps).astype(ratio.dtype), weight)
+    approx_kl = _mean((ratio - 1.0) - log_ratio, weight)
+    stop = jax.lax.stop_gradient
+    return loss, {"loss_policy": loss, "clip_fraction": stop(clipped_share), "approx_kl": stop(approx_kl)}
+
+
+def ppo_value_loss(
+    values: jax.Array,
+    old_values: jax.Array,
+    targets: jax.Array,
+    clip_eps: float | jax.Array | None = None,
+    weight: jax.Array | None = None,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """0.5·mean[(V − target)²], or with ``clip_eps`` PPO's clipped form 0.5·mean[max((V − target)²,
+    (V_old + clip(V − V_old, −ε, ε) − target)²)]: the value moves at most ε from the rollout's."""
+    error = jnp.square(values - targets)
+    if clip_eps is not None:
+        moved = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
+        error = jnp.maximum(error, jnp.square(moved - targets))
+    loss = 0.5 * _mean(error, weight)
+    return loss, {"loss_value": loss}
+
+
+def xppo_actor_loss(
+    log_ratio: jax.Array,
+    advantages: jax.Array,
+    entropy: jax.Array,
+    weights: jax.Array,
+    clip_eps: float | jax.Array,
+    entropy_coef: float | jax.Array,
+    kappa: float | jax.Array,
+    weight: jax.Array | None = None,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """XPPO's actor objective: the clipped surrogate − c_H·mean H(π) − κ·mean H(w), the mixture
+    entropy regulariser of eq. 10 on the object weights ``weights`` (..., O). ``entropy`` is the
+    policy's entropy per sample (closed form for the categorical mixture, its
+    :meth:`~xrl_jax.distributions.SquashedGaussianMixture.entropy_estimate` for the Gaussian one).
+    PPO is the one-object case, where H(w) = 0."""
+    surrogate, metrics = ppo_policy_loss(log_ratio, advantages, clip_eps, weight)
+    weights_entropy = clipped_entropy(weights)
+    loss = surrogate - entropy_coef * _mean(entropy, weight) - kappa * _mean(weights_entropy, weight)
+    stop = jax.lax.stop_gradient
+    return loss, {**metrics, "loss_actor": loss, "entropy_mean": stop(_mean(entropy, weight)),
+                  "mixture_entropy": stop(_mean(weights_entropy, weight))}  # fmt: skip
+
+
+def _mean(values: jax.Array, weight: jax.Array | None) -> jax.Array:
+    """Mean over every axis, of the used entries (``weight`` 1) where given; 0 when none is used."""
+    if weight is None:
+        return jnp.mean(values)
+    weight = jnp.broadcast_to(weight, values.shape).astype(values.dtype)
+    return jnp.sum(values * weight) / jnp.maximum(jnp.sum(weight), 1.0)

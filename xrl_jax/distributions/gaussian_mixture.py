@@ -158,6 +158,28 @@ class SquashedGaussianMixture(Mixture):
             safe_atanh(action), action, self.loc, self.log_scale, self.log_weights, floor_density
         )
 
+    def log_prob_pre_squash(self, u: Array) -> Array:
+        """log π(tanh(u)|s) from the pre-squash point u (..., A): exact where tanh saturates, where
+        atanh of the stored action could not give u back. An on-policy ratio π_new/π_old at one stored
+        u is exact this way: the tanh Jacobian is the same float in both and cancels."""
+        u = self._check_action(u)
+        return mixture_log_prob(u, jnp.tanh(u), self.loc, self.log_scale, self.log_weights, False)
+
+    def sample_pre_squash_and_log_prob(self, key: Array) -> tuple[Array, Array]:
+        """:meth:`sample_and_log_prob` returning the pre-squash point u (..., A) instead of the action
+        tanh(u): what an on-policy rollout stores for :meth:`log_prob_pre_squash` later."""
+        u, _ = self._sample_pre_squash(key)
+        return u, mixture_log_prob(u, jnp.tanh(u), self.loc, self.log_scale, self.log_weights, False)
+
+    def entropy_estimate(self, key: Array) -> Array:
+        """An unbiased, differentiable estimate of the mixture's entropy H(π(·|s)) (...), which has no
+        closed form: one reparameterised draw per component, a_k = tanh(μ_k + σ_k ε_k), and
+        -Σ_k w_k log π(a_k|s) under the full mixture, the exact expectation over the component k (the
+        estimator of XSAC's actor loss, eq. 8-9, without its density floor). Gradients reach the weights
+        through the sum and the components through the draws."""
+        _, log_probs = self.sample_per_component(key, floor_density=False)
+        return -jnp.sum(self.weights * log_probs, axis=-1)
+
     def component_log_prob(self, action: Array) -> Array:
         """log h_k(a) of every component alone (no weight): (..., K). For explanations."""
         action = self._check_action(action)
