@@ -57,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         return fail(PROG, problem)
     args = build_parser().parse_args(argv)
+    from xrl_jax.benchmarks.table_one import policy_costs
     from xrl_jax.report import ReportError, write_report
 
     speed = None if args.controller in (None, DRIVERS_DEFAULT) else args.controller  # None: the defaults
@@ -68,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
             args.controller is not None,
             args.early,
             note=lambda message: print(f"{PROG}: note: {message}", file=sys.stderr),
+            policy_costs=policy_costs,
         )
     except ReportError as err:
         return fail(PROG, err)

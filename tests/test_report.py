@@ -179,6 +179,49 @@ def test_an_agent_has_one_colour_in_every_figure_and_legends_sit_outside_the_axe
     assert styles == ["-", "--"]
 
 
+def test_table_one_puts_each_weight_depth_beside_sac_with_its_costs(tmp_path):
+    """Issue 50: Table I at the runs' scale. XSAC runs with weights from layers 1 and 2 and the main
+    XSAC run (layer = actor depth) beside SAC, each with its return and the costs that
+    ``policy_costs`` gives for its own agent config; the paper's numbers only beside its protocol.
+    Without a weight-depth variant there is no table."""
+    from xrl_jax.report import table_one_rows
+
+    folders = [
+        fake_run(tmp_path / "sac", "country_road", "sac", "quick", [1.0, 2.0, 3.0, 4.0]),
+        fake_run(tmp_path / "xsac", "country_road", "xsac", "quick", [5.0, 6.0, 7.0, 8.0]),
+        *[
+            fake_run(tmp_path / f"w{d}", "country_road", "xsac", "quick", [9.0, 10.0, 11.0, 12.0],
+                     overrides={"weight_depth": str(d)})
+            for d in (1, 2)
+        ],
+        fake_run(tmp_path / "tracking", "tracking", "xsac", "quick", [1.0, 2.0]),
+    ]
+    runs = read_runs(folders)
+    assert table_one_rows([r for r in runs if r.cfg.agent.weight_depth is None]) == []
+
+    def costs(config):  # a stand-in: the depth decides the FLOPs, as in the real count
+        depth = config.weight_depth or config.actor_depth
+        return {"params": 100, "flops_as_run": 1000.0 * depth if config.algo == "xsac" else 7.0,
+                "flops_xla": 5000.0}  # fmt: skip
+
+    rows = table_one_rows(runs, costs)
+    depth = resolve_config("country_road", "xsac", "quick").agent.actor_depth
+    assert [r["model"] for r in rows] == ["SAC (baseline)", "XSAC, weights from hidden layer 1",
+                                          "XSAC, weights from hidden layer 2",
+                                          f"XSAC, weights from hidden layer {depth}"]  # fmt: skip
+    assert [r["FLOPs per action (as run)"] for r in rows] == ["7", "1,000", "2,000", f"{1000 * depth:,}"]
+    assert rows[1]["final return"] == _cell_of([9.0, 10.0, 11.0, 12.0])
+    assert all(r["paper: final return"] == "-" for r in rows)  # quick runs: not the paper's protocol
+    out = tmp_path / "report"
+    write_report(folders, out, policy_costs=costs)
+    assert "## Table I" in (out / "report.md").read_text() and (out / "table_one.md").exists()
+
+
+def _cell_of(scores) -> str:
+    interval = stats.stratified_bootstrap_ci(np.array(scores), stats.iqm)
+    return f"{interval.estimate:.2f} [{interval.low:.2f}, {interval.high:.2f}]"
+
+
 @pytest.mark.parametrize("where", ["an existing file", "below a file"])
 def test_report_cli_refuses_an_out_it_cannot_write_in_one_line(folders, tmp_path, capsys, where):
     """Before: a 12-21-line traceback (FileExistsError, NotADirectoryError). Now one line, status 2,

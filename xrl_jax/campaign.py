@@ -397,6 +397,7 @@ def run_campaign(
     every started run into ``out/report``. ``say`` takes progress notes, ``show`` the report's path;
     ``again`` is the command that continues the campaign. Returns the exit status: a run's own when
     it was stopped by a signal or refused its options, 1 when a run did not finish, else 0."""
+    from xrl_jax.benchmarks import table_one
     from xrl_jax.report import ReportError, write_report
     from xrl_jax.runs.folder import has_config
 
@@ -424,7 +425,9 @@ def run_campaign(
             failed.append(planned.name)
     folders = [out / r.name for r in runs if has_config(out / r.name)]
     try:
-        report = write_report(folders, out / "report", controller=settings.controller)
+        report = write_report(
+            folders, out / "report", controller=settings.controller, policy_costs=table_one.policy_costs
+        )
     except ReportError as err:  # the runs are kept; only the report is missing
         say(f"the runs are kept, but the report failed: {err}")
         return 1

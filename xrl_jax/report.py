@@ -264,6 +264,7 @@ def write_report(
     controller: bool = False,
     early_fraction: float = EARLY_FRACTION,
     note=None,
+    policy_costs=None,
 ) -> Path:
     """Read ``folders`` and write ``out``/report.md with the tables (``results_<env>.md/.csv``), figures
     (``<env>.png``, ``sweep_<folder>.png``) and improvement probabilities (``improvement.json``, at
@@ -274,14 +275,17 @@ def write_report(
     the hand controller on the racing tracks, the scripted driver on the Intersection. A folder given
     twice, or also as a report's copy of its records, is reported once (``note`` takes a line about
     it; :func:`~xrl_jax.runs.kept.distinct_runs`); :class:`ReportError` (one line) when a folder is not
-    a run or ``out`` cannot be written."""
+    a run or ``out`` cannot be written. With runs of the paper's Table I (XSAC on continuous Country
+    Road with its weights from hidden layer φ_d, beside SAC), ``policy_costs`` (an ``AgentConfig`` ->
+    parameters and FLOPs per action, :func:`xrl_jax.benchmarks.table_one.policy_costs`) gives the
+    table's costs beside the returns."""
     controller = controller or controller_speed is not None
     out = Path(out)
     _make_report_folder(out)
     runs = read_runs(distinct_runs(folders, note), note)
     try:
         keep_records([folder for run in runs for folder in run.folders], out)
-        return _write_report(runs, out, controller_speed, controller, early_fraction)
+        return _write_report(runs, out, controller_speed, controller, early_fraction, policy_costs)
     except OSError as err:  # a folder that turned unwritable, a full disk
         raise ReportError(f"cannot write the report into {out}: {err.strerror or err}") from None
 
@@ -313,8 +317,43 @@ def _interval_paragraph(runs: list[Run]) -> list[str]:
     ]
 
 
+def table_one_rows(runs: list[Run], policy_costs=None) -> list[dict[str, str]]:
+    """The paper's Table I at the runs' scale: SAC and every XSAC run on continuous Country Road, by
+    preset, each with its final return (IQM [95 % CI]) and, with ``policy_costs``, its actor's
+    parameters and FLOPs per action (as run, and on every cone slot); the paper's numbers beside
+    the runs of its protocol. Empty unless some XSAC run takes its weights from an earlier layer
+    (``weight_depth``), which is what makes the table."""
+    plain = [r for r in runs
+             if r.cfg.env == "country_road" and not r.is_sweep and r.cfg.algo in ("sac", "xsac")]  # fmt: skip
+    if not any(r.cfg.algo == "xsac" and r.cfg.agent.weight_depth is not None for r in plain):
+        return []
+    published_rows = json.loads(PAPER_RESULTS.read_text())["table_1_country_road_continuous"]
+    paper = {row.get("weight_depth"): row for row in published_rows}  # the baseline has none
+
+    def depth(run: Run) -> int | None:
+        return None if run.cfg.algo == "sac" else (run.cfg.agent.weight_depth or run.cfg.agent.actor_depth)
+
+    rows = []
+    for run in sorted(plain, key=lambda r: (r.cfg.preset, depth(r) or 0, r.name)):
+        d = depth(run)
+        row = {"model": "SAC (baseline)" if d is None else f"XSAC, weights from hidden layer {d}",
+               "preset": run.cfg.preset, "seeds": f"{len(run.summary['seeds'])}/{run.cfg.num_seeds}",
+               "final return": _cell(run.summary["aggregate"].get("avg_return"))}  # fmt: skip
+        if policy_costs is not None:
+            costs = policy_costs(run.cfg.agent)
+            row["parameters"] = f"{costs['params']:,}"
+            row["FLOPs per action (as run)"] = f"{costs['flops_as_run']:,.0f}"
+            row["FLOPs per action (every slot)"] = f"{costs['flops_xla']:,.0f}"
+        published = paper.get(d) if run.cfg.preset == "paper" else None
+        row["paper: final return"] = f"{published['return_iqm']:.2f}" if published else "-"
+        row["paper: parameters"] = f"{published['params']:,}" if published else "-"
+        row["paper: FLOPs per action"] = f"{published['flops']:,}" if published else "-"
+        rows.append(row)
+    return rows
+
+
 def _write_report(
-    runs: list[Run], out: Path, controller_speed, controller: bool, early_fraction: float
+    runs: list[Run], out: Path, controller_speed, controller: bool, early_fraction: float, policy_costs=None
 ) -> Path:
     lines = ["# Results report", "",
              "IQM with its 95 % stratified bootstrap CI over seeds (final evaluation). The paper's value "
@@ -364,6 +403,15 @@ def _write_report(
                 plot_sweep(run.summary, path, baseline.summary if baseline else None)
                 lines += ["", f"Sweep {run.label}: {run.status()}", "", f"![sweep]({path.name})"]
         lines.append("")
+    table_one = table_one_rows(runs, policy_costs)
+    if table_one:
+        (out / "table_one.md").write_text(markdown_table(table_one) + "\n")
+        lines += ["## Table I: where the mixture weights come from", "",
+                  "XSAC with its mixture weights taken from hidden layer φ_d (docs/algorithms.md §3.7: the "
+                  "layers up to φ_d run for every cone, the rest for the sampled one only), beside SAC, on "
+                  "continuous Country Road. FLOPs per action are XLA's count of one action's computation "
+                  "(xrl_jax/benchmarks/table_one.py): as run, on the present cones packed, and on every "
+                  "cone slot (the paper's count).", "", markdown_table(table_one), ""]  # fmt: skip
     (out / "improvement.json").write_text(json.dumps(all_improvements, indent=2) + "\n")
     if controller:
         lines += ["The hand controller (docs/carenv-single-agent.md §8.3) follows the centre line at a "

@@ -78,38 +78,44 @@ def acting_flops(nets: networks.Networks, params, obs, key) -> float:
     return compiled_flops(lambda p, o, k: nets.actor.apply(p, o, k, method="sample_fast"), params, obs, key)
 
 
-def measure_table_one() -> list[dict]:
-    """One row per model of Table I: parameters, FLOPs per action (every slot, packed, as run,
-    analytic) and the paper's numbers."""
+def policy_costs(config) -> dict:
+    """Parameters and FLOPs per action of the Country Road actor of ``config`` (an ``AgentConfig`` of
+    SAC or XSAC): on every cone slot (``flops_xla``), packed as it runs (``flops_packed``), and as run
+    (weighted with the measured chance that an observation holds more cones than the packed rows)."""
     shape = networks.ENV_OBSERVATIONS["country_road"]
     obs = networks.dummy_observation(shape)
     obs["cones_set"] = obs["cones_set"].at[:, 0].set(1.0)  # every cone slot present: the worst case
     key = jax.random.key(0)
-    histogram = load_occupancy()["country_road"]["histogram"]
+    actions = envs.action_size(envs.action_space("country_road"))
+    nets = networks.make_networks(config.replace(dense_sets=True), shape, actions)
+    params = jax.jit(nets.init_actor)(key)
+    packed_only = networks.packed_only(networks.make_networks(config, shape, actions))
+    dense, packed = (acting_flops(n, params, obs, key) for n in (nets, packed_only))
+    capacity = Packing(nets.config.packed_rows).capacity(1, shape.num_objects)
+    fallback = overflow_probability(load_occupancy()["country_road"]["histogram"], 1, capacity)
+    return {
+        "params": count_params(params),
+        "flops_xla": dense,
+        "flops_packed": packed,
+        "packed_capacity": capacity,
+        "fallback_probability": fallback,
+        "flops_as_run": (1 - fallback) * packed + fallback * dense,
+    }
+
+
+def measure_table_one() -> list[dict]:
+    """One row per model of Table I: parameters, FLOPs per action (every slot, packed, as run,
+    analytic) and the paper's numbers."""
+    shape = networks.ENV_OBSERVATIONS["country_road"]
     rows = []
     for name, algo, depth in [
         ("baseline (SAC, Deep Set)", "sac", None),
         *[(f"XSAC φ_d={d}", "xsac", d) for d in (1, 2, 3)],
     ]:
-        overrides = {} if depth is None else {"weight_depth": depth}
-        nets = country_road_networks(algo, dense_sets=True, **overrides)
-        params = jax.jit(nets.init_actor)(key)
-        packed_only = networks.packed_only(country_road_networks(algo, **overrides))
-        dense, packed = (acting_flops(n, params, obs, key) for n in (nets, packed_only))
-        capacity = Packing(nets.config.packed_rows).capacity(1, shape.num_objects)
-        fallback = overflow_probability(histogram, 1, capacity)
-        row = {
-            "model": name,
-            "params": count_params(params),
-            "flops_xla": dense,
-            "flops_packed": packed,
-            "packed_capacity": capacity,
-            "fallback_probability": fallback,
-            "flops_as_run": (1 - fallback) * packed + fallback * dense,
-            "flops_analytic": None,
-        }
+        config = preset("paper", "country_road", algo)
+        config = config if depth is None else config.replace(weight_depth=depth)
+        row = {"model": name, **policy_costs(config), "flops_analytic": None}
         if depth is not None:
-            config = nets.config
             row["flops_analytic"] = mixture_actor_sample_flops(
                 shape.num_objects,
                 shape.object_features + shape.state_dim,
