@@ -179,6 +179,24 @@ def test_an_agent_has_one_colour_in_every_figure_and_legends_sit_outside_the_axe
     assert styles == ["-", "--"]
 
 
+def test_sweep_points_are_compared_with_the_baseline_and_the_best_point(folders):
+    """Fig. 8's reading: each κ against the DSAC baseline, and the best point against the others,
+    each by the Mann-Whitney U test. The fixture's points (2 seeds each: 1-2, 3-4, 5-6) all lie below
+    the baseline's 4 seeds (80-83): P = 0, p = 2 / C(6, 2) = 2/15; the best point (κ = 0.01) beats
+    each other one in every pair: p = 2 / C(4, 2) = 1/3, not a difference at 2 vs 2 seeds."""
+    from xrl_jax.comparisons import sweep_comparisons
+
+    runs = read_runs(list(folders.values()))
+    sweep = next(r for r in runs if r.is_sweep)
+    baseline = next(r for r in runs if r.cfg.algo == "dsac")
+    lines = sweep_comparisons(sweep, baseline)
+    assert len(lines) == 4
+    assert lines[0] == "kappa=0: P(> dsac) = 0.00 [0.00, 0.00] (2 vs 4 seeds; Mann-Whitney p = 0.13)"
+    assert lines[3] == ("best IQM: kappa=0.01; against every other point (Mann-Whitney): kappa=0 p = 0.33, "
+                        "kappa=0.001 p = 0.33")  # fmt: skip
+    assert sweep_comparisons(sweep, None) == lines[3:]
+
+
 def test_table_one_puts_each_weight_depth_beside_sac_with_its_costs(tmp_path):
     """Issue 50: Table I at the runs' scale. XSAC runs with weights from layers 1 and 2 and the main
     XSAC run (layer = actor depth) beside SAC, each with its return and the costs that

@@ -25,7 +25,7 @@ LAYERS = [
     {"evaluation"},
     {"runs"},  # the results folder: the trainer writes it
     {"train"},
-    {"report_figures"},
+    {"report_figures", "comparisons"},
     {"report", "explain", "benchmarks"},
     {"campaign"},
 ]

@@ -19,12 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from xrl_jax import stats
-from xrl_jax.config import scenario
+from xrl_jax.comparisons import improvements, interval_paragraph, sweep_comparisons, verdict
+from xrl_jax.config import BASELINES
 from xrl_jax.evaluation import evaluate_yardstick, has_yardstick
 from xrl_jax.report_figures import (
     ALGO_ORDER,
-    BASELINES,
     env_figure,
     pairs_figure,
     table_metrics,
@@ -34,7 +33,6 @@ from xrl_jax.runs.folder import RunFolderError, first_nonfinite_metric, read_run
 from xrl_jax.runs.kept import distinct_runs, keep_records, protocol_groups
 from xrl_jax.runs.plots import plot_sweep
 from xrl_jax.runs.summary import summarize_pooled, summarize_run, summary_metrics
-from xrl_jax.runs.tables import coverage_note
 from xrl_jax.train.kinds import scenario_kind
 
 PAPER_RESULTS = Path(__file__).resolve().parents[1] / "docs" / "paper_results.json"
@@ -199,61 +197,6 @@ def csv_table(rows: list[dict[str, str]]) -> str:
     return out.getvalue()
 
 
-def improvement_metrics(env: str) -> tuple[str, ...]:
-    """The metrics P(explainable > baseline) is taken on: return; on the Intersection, Fig. 7's
-    completed trips and early terminations (there a value below 0.5 favours the explainable agent)."""
-    return scenario(env).improvement_keys
-
-
-def _scores_at(run: Run, metric: str, step: int | None) -> np.ndarray:
-    """Every seed's ``metric`` at evaluation ``step`` (None: the final one); empty where not all
-    seeds have reached the step."""
-    if step is None:
-        return run.final_scores(metric)
-    point = next((p for p in run.summary["curve"] if p["step"] == step and metric in p), None)
-    return np.array(point[metric]["per_seed"] if point else [], np.float64)
-
-
-def early_step(x: Run, y: Run, fraction: float) -> int | None:
-    """The evaluation step both runs have that lies nearest ``fraction`` of the way through x's run
-    (the 'early stage of training' of Fig. 7); None if they share no evaluation step."""
-    shared = sorted({p["step"] for p in x.summary["curve"]} & {p["step"] for p in y.summary["curve"]})
-    if not shared:
-        return None
-    return min(shared, key=lambda step: (abs(step - fraction * x.cfg.total_steps), step))
-
-
-def improvements(
-    runs: list[Run], env: str, metric: str | None = None, early_fraction: float | None = None
-) -> list[dict[str, Any]]:
-    """P(X > Y) with its 95 % bootstrap CI, the Mann-Whitney U test's two-sided p-value (``p_value``) and
-    the share of samples without a difference whose interval holds 0.5 at these seed counts
-    (``coverage_without_difference``), of each explainable agent X against its baseline Y, for
-    every pair of complete-enough plain runs of ``env`` with the same preset, on each seed's final
-    ``metric`` (default: each of :func:`improvement_metrics`) and, with ``early_fraction``, also at the shared
-    evaluation step nearest that fraction of the run (:func:`early_step`; ``"step"`` in the record)."""
-    metrics = (metric,) if metric else improvement_metrics(env)
-    plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
-    out = []
-    for x in plain:
-        for y in plain:
-            if BASELINES.get(x.cfg.algo) != y.cfg.algo or x.cfg.preset != y.cfg.preset:
-                continue
-            early = None if early_fraction is None else early_step(x, y, early_fraction)
-            for name in metrics:
-                for step in [early, None] if early is not None else [None]:
-                    xs, ys = _scores_at(x, name, step), _scores_at(y, name, step)
-                    if xs.size == 0 or ys.size == 0:
-                        continue
-                    interval = stats.probability_of_improvement_ci(xs, ys)
-                    held = stats.improvement_interval_coverage(int(xs.size), int(ys.size))
-                    out.append({"x": x.label, "y": y.label, "metric": name, "step": step or "final",
-                                **interval.as_dict(), "seeds": [int(xs.size), int(ys.size)],
-                                "p_value": stats.improvement_test(xs, ys),
-                                "coverage_without_difference": held})  # fmt: skip
-    return out
-
-
 EARLY_FRACTION = 0.25  # "early stages of training" (Fig. 7): the evaluation nearest a quarter of the run
 
 
@@ -299,24 +242,6 @@ def _make_report_folder(out: Path) -> None:
         raise ReportError(f"cannot create the report folder --out {out}: {err.strerror or err}") from None
 
 
-def _interval_paragraph(runs: list[Run]) -> list[str]:
-    """What the report's intervals are and what they cover at the seed counts of ``runs``."""
-    aggregates = [agg for run in runs if not run.is_sweep for agg in run.summary["aggregate"].values()]
-    aggregates += [agg for run in runs if run.is_sweep for point in run.summary["sweep"]["points"]
-                   for agg in point["aggregate"].values()]  # fmt: skip
-    note = coverage_note(aggregates)
-    if note is None:
-        return []
-    return [
-        f"{note} (`xrl_jax.stats.iqm_interval_coverage`: below 5 seeds the interval is [lowest, highest "
-        "seed] and holds the median 1 - 2^(1-n) of the time). P(X > Y) is the chance that a seed of X "
-        "beats a seed of Y, with its percentile bootstrap interval (X's and Y's seeds resampled apart); "
-        "beside it the two-sided Mann-Whitney U test's p-value (exact over every split of the seeds up to "
-        "20,000 splits), the test behind any \"difference\" said here, and the share of samples without a "
-        "difference whose interval holds 0.5 at those seed counts."
-    ]
-
-
 def table_one_rows(runs: list[Run], policy_costs=None) -> list[dict[str, str]]:
     """The paper's Table I at the runs' scale: SAC and every XSAC run on continuous Country Road, by
     preset, each with its final return (IQM [95 % CI]) and, with ``policy_costs``, its actor's
@@ -359,7 +284,7 @@ def _write_report(
              "IQM with its 95 % stratified bootstrap CI over seeds (final evaluation). The paper's value "
              "stands beside a run that used its protocol (`--preset paper`); other presets are shorter "
              "runs and are not comparable with it. Source of the paper's numbers: docs/paper_results.json.",
-             "", *_interval_paragraph(runs), ""]  # fmt: skip
+             "", *interval_paragraph(runs), ""]  # fmt: skip
     all_improvements, all_references = [], []
     for env in sorted({r.cfg.env for r in runs}):
         lines += [f"## {env}", ""]
@@ -389,8 +314,7 @@ def _write_report(
             seeds = f"{item['seeds'][0]} vs {item['seeds'][1]} seeds"
             when = "final evaluation" if item["step"] == "final" else f"evaluation at step {item['step']:,}"
             metric = labels[item["metric"]].removeprefix("final ")
-            verdict = ", a difference at the 5 % level" if item["p_value"] < 0.05 else ""
-            test = f"Mann-Whitney p = {item['p_value']:.2g}{verdict}"
+            test = f"Mann-Whitney p = {item['p_value']:.2g}{verdict(item['p_value'])}"
             held = 100 * item["coverage_without_difference"]
             held = f"the interval holds 0.5 without a difference {held:.0f} %"
             lines.append(f"- P({item['x']} > {item['y']}) on {metric}, {when}: {interval} "
@@ -401,7 +325,8 @@ def _write_report(
             path = out / f"sweep_{run.name}.png"
             if run.summary["sweep"]["points"] and any(p["aggregate"] for p in run.summary["sweep"]["points"]):
                 plot_sweep(run.summary, path, baseline.summary if baseline else None)
-                lines += ["", f"Sweep {run.label}: {run.status()}", "", f"![sweep]({path.name})"]
+                lines += ["", f"Sweep {run.label}: {run.status()}", "", f"![sweep]({path.name})", ""]
+                lines += [f"- {line}" for line in sweep_comparisons(run, baseline)]
         lines.append("")
     table_one = table_one_rows(runs, policy_costs)
     if table_one:

@@ -6,13 +6,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from xrl_jax.config import scenario
+from xrl_jax.config import BASELINES, scenario
 from xrl_jax.runs.plots import format_step_axis
 from xrl_jax.runs.tables import curve_label
 
 Run = Any  # xrl_jax.report.Run (a run's cfg, summary and label); that module sits above this one
 
-BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
 ALGO_ORDER = ("sac", "xsac", "dsac", "xdsac")
 # One colour per agent in every figure: a baseline and its explainable agent in one hue family's
 # neighbours would be hard to tell apart, so the pairs get contrasting colours.

@@ -23,6 +23,7 @@ from xrl_jax.config.agent import AgentConfig, field_names
 from xrl_jax.config.checks import ConfigError
 from xrl_jax.config.names import (
     ALGOS,
+    BASELINES,
     CONTINUOUS_ALGOS,
     CRITIC_LOSSES,
     DISCRETE_ALGOS,
@@ -58,6 +59,7 @@ from xrl_jax.config.train import TrainConfig, train_field_names, unused_sweep_re
 
 __all__ = [
     "ALGOS",
+    "BASELINES",
     "CONTINUOUS_ALGOS",
     "COUNTRY_ROAD_PACKED_ROWS",
     "CRITIC_LOSSES",

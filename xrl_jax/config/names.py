@@ -8,6 +8,7 @@ PRESETS = ("paper", "quick", "smoke")
 CONTINUOUS_ALGOS = ("sac", "xsac")
 DISCRETE_ALGOS = ("dsac", "xdsac")
 MIXTURE_ALGOS = ("xsac", "xdsac")
+BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
 FEATURE_EXTRACTORS = ("deepset", "flat_pe")  # names of xrl_jax.networks.make_extractor
 CRITIC_LOSSES = ("huber", "l2")
 TRUNCATION_MODES = ("drop", "bootstrap")
