@@ -118,7 +118,10 @@ def test_quick_racing_agents_differ_from_the_paper_only_in_sizes_and_optimisatio
 @pytest.mark.parametrize(
     "changes, message",
     [
-        ({"algo": "ppo"}, "unknown algo 'ppo'; allowed: sac, dsac, xsac, xdsac"),
+        ({"algo": "a2c"}, "unknown algo 'a2c'; allowed: sac, dsac, xsac, xdsac, ppo, dppo, xppo, xdppo"),
+        ({"gae_lambda": 1.5}, "gae_lambda must lie in \\[0, 1\\]"),
+        ({"ppo_minibatches": 0}, "ppo_minibatches must be a positive integer"),
+        ({"clip_eps": 0.0}, "clip_eps must be positive"),
         ({"actor_lr": -1e-4}, "actor_lr must be positive"),
         ({"critic_lr": 0.0}, "critic_lr must be positive"),
         ({"alpha_lr": float("nan")}, "alpha_lr must be a finite number"),

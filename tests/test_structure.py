@@ -22,7 +22,7 @@ LAYERS = [
     {"action_spaces", "policies"},
     {"networks", "agent_state"},
     {"agents"},
-    {"evaluation"},
+    {"evaluation", "ppo"},
     {"runs"},  # the results folder: the trainer writes it
     {"train"},
     {"report_figures", "comparisons"},

@@ -172,12 +172,26 @@ class DiscreteCritic(nn.Module):
         return self.q_from_features(self.features(obs))
 
 
+class ValueNetwork(nn.Module):
+    """V(s) of the on-policy agents (:mod:`xrl_jax.ppo`): the state features of an extractor (the
+    critic's Deep Set or positional encoding), an MLP, one output."""
+
+    extractor: nn.Module
+    widths: tuple[int, ...]
+
+    @nn.compact
+    def __call__(self, obs: Observation) -> Array:
+        features = MLP(self.widths, name="trunk")(self.extractor(obs))
+        return nn.Dense(1, name="value")(features)[..., 0]
+
+
 __all__ = [
     "ContinuousCritic",
     "ContinuousQHead",
     "DiscreteCritic",
     "DiscreteQHead",
     "FeatureActionDense",
+    "ValueNetwork",
     "broadcast_features",
     "critic_ensemble",
 ]

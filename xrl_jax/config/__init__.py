@@ -22,6 +22,7 @@ config's module only; adding a preset, the presets module only.
 from xrl_jax.config.agent import AgentConfig, field_names
 from xrl_jax.config.checks import ConfigError
 from xrl_jax.config.names import (
+    ACTOR_TWIN,
     ALGOS,
     BASELINES,
     CONTINUOUS_ALGOS,
@@ -34,6 +35,7 @@ from xrl_jax.config.names import (
     MAX_VEHICLES,
     MIXTURE_ALGOS,
     MIXTURE_LOG_STD_MIN,
+    ON_POLICY_ALGOS,
     PRESETS,
     SAC_LOG_STD_MIN,
     SWEEPABLE_FIELDS,
@@ -58,6 +60,7 @@ from xrl_jax.config.scenarios import SCENARIOS, Scenario, scenario
 from xrl_jax.config.train import TrainConfig, train_field_names, unused_sweep_reason
 
 __all__ = [
+    "ACTOR_TWIN",
     "ALGOS",
     "BASELINES",
     "CONTINUOUS_ALGOS",
@@ -73,6 +76,7 @@ __all__ = [
     "MAX_VEHICLES",
     "MIXTURE_ALGOS",
     "MIXTURE_LOG_STD_MIN",
+    "ON_POLICY_ALGOS",
     "PRESETS",
     "QUICK_INTERSECTION_OPTIMISATION",
     "QUICK_RACING_OPTIMISATION",

@@ -11,6 +11,7 @@ from typing import Any
 
 from xrl_jax.config.checks import check_choice, check_known, is_int, is_number, require, setting
 from xrl_jax.config.names import (
+    ACTOR_TWIN,
     ALGOS,
     CRITIC_LOSSES,
     DISCRETE_ALGOS,
@@ -18,6 +19,7 @@ from xrl_jax.config.names import (
     LOG_STD_MAX,
     MIXTURE_ALGOS,
     MIXTURE_LOG_STD_MIN,
+    ON_POLICY_ALGOS,
     SAC_LOG_STD_MIN,
     TRUNCATION_MODES,
 )
@@ -27,7 +29,7 @@ from xrl_jax.config.names import (
 class AgentConfig:
     """Hyper-parameters of one agent; defaults are the common values of §5.7 (racing SAC shapes)."""
 
-    algo: str = setting("sac", "agent: sac, dsac, xsac, xdsac")
+    algo: str = setting("sac", "agent: sac, dsac, xsac, xdsac; xrl_jax.ppo: ppo, dppo, xppo, xdppo")
     # --- architecture (static) ---
     actor_width: int = setting(256, "actor hidden width")
     actor_depth: int = setting(2, "actor hidden layers")
@@ -73,17 +75,29 @@ class AgentConfig:
     kappa: float = setting(1e-3, "mixture-entropy weight κ of eq. 10 (X agents; may be negative)")
     init_alpha: float = setting(0.1, "initial (or fixed) entropy coefficient α")
     target_entropy: float | None = setting(None, "none = −A (continuous), 0.9 ln N (DSAC), 0.5 ln N (XDSAC)")
+    # --- the on-policy family (ppo, dppo, xppo, xdppo; xrl_jax.ppo) ---
+    rollout_steps: int = setting(128, "PPO: vector steps per rollout, before its epochs of updates")
+    ppo_epochs: int = setting(4, "PPO: passes over each rollout")
+    ppo_minibatches: int = setting(4, "PPO: minibatches per pass")
+    clip_eps: float = setting(0.2, "PPO: clipping ε of the probability ratio")
+    value_clip_eps: float | None = setting(None, "PPO: clipping of the value's move per rollout; none = off")
+    ent_coef: float = setting(0.01, "PPO: weight of the policy-entropy bonus")
+    gae_lambda: float = setting(0.95, "PPO: λ of generalised advantage estimation")
 
     def __post_init__(self) -> None:
         _validate_agent(self)
 
     @property
     def is_discrete(self) -> bool:
-        return self.algo in DISCRETE_ALGOS
+        return ACTOR_TWIN.get(self.algo, self.algo) in DISCRETE_ALGOS
 
     @property
     def is_mixture(self) -> bool:
-        return self.algo in MIXTURE_ALGOS
+        return ACTOR_TWIN.get(self.algo, self.algo) in MIXTURE_ALGOS
+
+    @property
+    def is_on_policy(self) -> bool:
+        return self.algo in ON_POLICY_ALGOS
 
     def resolved_log_std_min(self) -> float:
         if self.log_std_min is not None:
@@ -122,7 +136,7 @@ def _validate_agent(cfg: AgentConfig) -> None:
         require(condition, f"AgentConfig: {message}")
 
     for name, choices in (
-        ("algo", ALGOS),
+        ("algo", (*ALGOS, *ON_POLICY_ALGOS)),
         ("feature_extractor", FEATURE_EXTRACTORS),
         ("critic_loss", CRITIC_LOSSES),
         ("truncation", TRUNCATION_MODES),
@@ -138,6 +152,9 @@ def _validate_agent(cfg: AgentConfig) -> None:
         "fe_set_depth",
         "n_critics",
         "components_per_object",
+        "rollout_steps",
+        "ppo_epochs",
+        "ppo_minibatches",
     ):
         check(is_int(getattr(cfg, name), 1), f"{name} must be a positive integer, got {getattr(cfg, name)!r}")
     for name in ("lr_decay_updates", "pe_freqs"):
@@ -162,8 +179,9 @@ def _validate_agent(cfg: AgentConfig) -> None:
         "XDSAC always uses a duelling critic (docs/algorithms.md §2.4); duelling=False is only for DSAC",
     )
     positive = ["actor_lr", "critic_lr", "init_alpha", "alpha_lr", "clip_norm", "fourier_scale"]
-    positive.append("packed_rows")
-    for name in ["kappa", "gamma", "tau", "target_entropy", "log_std_max", "log_std_min", *positive]:
+    positive += ["packed_rows", "clip_eps", "value_clip_eps"]
+    signed = ["kappa", "gamma", "tau", "target_entropy", "log_std_max", "log_std_min", "ent_coef"]
+    for name in [*signed, *positive]:
         value = getattr(cfg, name)
         if value is None:
             continue
@@ -171,6 +189,8 @@ def _validate_agent(cfg: AgentConfig) -> None:
         check(name not in positive or value > 0, f"{name} must be positive, got {value}")
     check(0.0 <= cfg.gamma <= 1.0, f"gamma must lie in [0, 1], got {cfg.gamma}")
     check(0.0 < cfg.tau <= 1.0, f"tau must lie in (0, 1], got {cfg.tau}")
+    check(is_number(cfg.gae_lambda) and 0.0 <= cfg.gae_lambda <= 1.0,
+          f"gae_lambda must lie in [0, 1], got {cfg.gae_lambda!r}")  # fmt: skip
     if cfg.epsilon_random is not None:
         check(
             is_number(cfg.epsilon_random) and 0.0 <= cfg.epsilon_random <= 1.0,

@@ -8,6 +8,10 @@ PRESETS = ("paper", "quick", "smoke")
 CONTINUOUS_ALGOS = ("sac", "xsac")
 DISCRETE_ALGOS = ("dsac", "xdsac")
 MIXTURE_ALGOS = ("xsac", "xdsac")
+# The on-policy family (xrl_jax.ppo): PPO and its mixture policy XPPO, each with continuous (squashed
+# Gaussian) and discrete (categorical) actions. Each has an off-policy twin with its actor and policy.
+ON_POLICY_ALGOS = ("ppo", "dppo", "xppo", "xdppo")
+ACTOR_TWIN = {"ppo": "sac", "dppo": "dsac", "xppo": "xsac", "xdppo": "xdsac"}
 BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
 FEATURE_EXTRACTORS = ("deepset", "flat_pe")  # names of xrl_jax.networks.make_extractor
 CRITIC_LOSSES = ("huber", "l2")
