@@ -41,6 +41,7 @@ def test_a_car_that_never_moves_idles_out_after_51_steps(scripted_evaluate):
     assert episodes["truncated"].all() and not episodes["terminated"].any()
     summary = summarize_episodes(episodes)
     assert summary["avg_etr"] == 0.0 and summary["avg_sr"] == 0.0 and summary["avg_episode_length"] == 51
+    assert summary["avg_end_idling"] == 1.0 and summary["avg_end_left_track"] == 0.0  # why it ended
 
 
 def test_full_throttle_straight_ahead_leaves_the_track(scripted_evaluate):
@@ -53,6 +54,11 @@ def test_full_throttle_straight_ahead_leaves_the_track(scripted_evaluate):
     assert (episodes["return"] > -1.0).all()
     summary = summarize_episodes(episodes)
     assert summary["avg_etr"] == 1.0 and summary["avg_sr"] == 0.0
+    # Why and where: every episode left the track, after driving some way along it.
+    assert summary["avg_end_left_track"] == 1.0 and summary["avg_end_time_limit"] == 0.0
+    assert (episodes["progress"] > 0).all() and summary["avg_end_progress_m"] == pytest.approx(
+        float(np.mean(episodes["progress"]))
+    )
 
 
 def test_episode_classification_closed_form():
@@ -64,8 +70,13 @@ def test_episode_classification_closed_form():
         "last_reward": np.array([-1.0, 0.2, -1.0, 0.1]),  # only a terminated ending can be early
         "track_velocity": np.array([1.0, 2.0, 3.0, 4.0]),
         "cones_hit": np.array([0, 1, 2, 3]),
+        "done_reason": np.array([1, 4, 2, 2]),  # left the track, an invalid action, two time limits
+        "progress": np.array([10.0, 20.0, 30.0, 60.0]),
     }
     summary = summarize_episodes(episodes)
+    assert (summary["avg_end_left_track"], summary["avg_end_invalid_action"]) == (0.25, 0.25)
+    assert (summary["avg_end_time_limit"], summary["avg_end_idling"]) == (0.5, 0.0)
+    assert summary["avg_end_progress_m"] == 30.0
     assert summary["avg_return"] == 2.5
     assert summary["avg_episode_length"] == 25.0
     assert summary["avg_etr"] == 0.25 and summary["avg_sr"] == 0.25

@@ -197,6 +197,28 @@ def test_sweep_points_are_compared_with_the_baseline_and_the_best_point(folders)
     assert sweep_comparisons(sweep, None) == lines[3:]
 
 
+def test_the_report_says_how_episodes_end_where_the_evaluations_record_it(tmp_path):
+    """Issue 50 (safety, looked at): the share of each way the final evaluation's episodes end and
+    the distance driven, a mean over seeds; a run whose records predate the fields has no row."""
+    from xrl_jax.report import ending_rows
+
+    recorded = fake_run(tmp_path / "xdsac", "country_road", "xdsac", "quick", [3.0, 4.0])
+    old = fake_run(tmp_path / "dsac", "country_road", "dsac", "quick", [1.0, 2.0])
+    for seed, path in enumerate(sorted((recorded / "eval").iterdir())):
+        rows = [json.loads(line) for line in path.read_text().splitlines()]
+        rows[-1] |= {"avg_end_left_track": 0.5 + 0.1 * seed, "avg_end_time_limit": 0.5 - 0.1 * seed,
+                     "avg_end_idling": 0.0, "avg_end_invalid_action": 0.0,
+                     "avg_end_progress_m": 100.0 * (seed + 1)}  # fmt: skip
+        path.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    (row,) = ending_rows(read_runs([old, recorded]), "country_road")
+    assert row["agent"].startswith("xdsac") and row["seeds"] == "2"
+    ended = (row["left the track"], row["time limit"], row["distance at the end (m)"])
+    assert ended == ("0.55", "0.45", "150.0")
+    out = tmp_path / "report"
+    write_report([old, recorded], out)
+    assert "How the final evaluation's episodes end" in (out / "report.md").read_text()
+
+
 def test_table_one_puts_each_weight_depth_beside_sac_with_its_costs(tmp_path):
     """Issue 50: Table I at the runs' scale. XSAC runs with weights from layers 1 and 2 and the main
     XSAC run (layer = actor depth) beside SAC, each with its return and the costs that

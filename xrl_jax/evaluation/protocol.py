@@ -5,7 +5,9 @@ evaluation of every seed sees the same tracks. Each agent acts in its evaluation
 DSAC, XDSAC greedy; XSAC stochastic, from a separate key stream). All episodes run in parallel
 (a batch of envs without auto-reset) until each has terminated or been truncated; finished
 episodes are frozen by masks. Per episode: return, length, how it ended; early termination (ETR)
-= terminated with a last reward below −0.5, success (SR) = terminated otherwise.
+= terminated with a last reward below −0.5, success (SR) = terminated otherwise; why it ended (the
+env's ``done_reason``: left the track, time limit, idling, an invalid action) and how far along the
+track (m), so that a report can say where and how an agent's episodes end, not only how often early.
 """
 
 from __future__ import annotations
@@ -16,10 +18,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs.racing import IDLING, LEFT_TRACK, MAX_TIME, NONFINITE_ACTION
 from xrl_jax.agents import check_eval_mode
 
 EARLY_TERMINATION_REWARD = -0.5
-EPISODE_FIELDS = ("return", "length", "terminated", "truncated", "last_reward", "track_velocity", "cones_hit")
+EPISODE_FIELDS = ("return", "length", "terminated", "truncated", "last_reward", "track_velocity", "cones_hit",
+                  "done_reason", "progress")  # fmt: skip
+# The racing envs' done_reason codes (envs.racing.DONE_REASONS) as evaluation-row names: the share of
+# episodes that ended so, avg_end_<name>.
+END_REASONS = {
+    LEFT_TRACK: "left_track", MAX_TIME: "time_limit", IDLING: "idling", NONFINITE_ACTION: "invalid_action"
+}
 
 
 def make_evaluate(env, eval_params, agent, num_episodes: int, mode: str = "eval"):
@@ -90,6 +99,8 @@ def make_evaluate_policy(env, eval_params, policy, num_episodes: int):
             "last_reward": zeros,
             "track_velocity": zeros,
             "cones_hit": jnp.zeros((num_episodes,), jnp.int32),
+            "done_reason": jnp.zeros((num_episodes,), jnp.int32),
+            "progress": zeros,
         }
 
         def running(carry):
@@ -118,6 +129,8 @@ def make_evaluate_policy(env, eval_params, policy, num_episodes: int):
                 "last_reward": keep(reward, record["last_reward"]),
                 "track_velocity": keep(info["avg_track_velocity"], record["track_velocity"]),
                 "cones_hit": keep(info["cones_hit"], record["cones_hit"]),
+                "done_reason": keep(info["done_reason"], record["done_reason"]),
+                "progress": keep(info["track_progress"], record["progress"]),
             }
             return obs, env_state, done | terminated | truncated, record, key, t + 1
 
@@ -148,12 +161,16 @@ def summarize_episodes(episodes: dict[str, Any]) -> dict[str, Any]:
             "episode_returns": [round(float(r), 6) for r in returns],
         }
     early = terminated & (np.asarray(episodes["last_reward"]) < EARLY_TERMINATION_REWARD)
-    return {
+    out = {
         "avg_return": float(returns.mean()),
         "avg_episode_length": float(np.mean(episodes["length"])),
         "avg_etr": float(early.mean()),
         "avg_sr": float((terminated & ~early).mean()),
         "avg_track_velocity": float(np.mean(episodes["track_velocity"])),
         "avg_cones_hit": float(np.mean(episodes["cones_hit"])),
-        "episode_returns": [round(float(r), 6) for r in returns],
     }
+    if "done_reason" in episodes:  # evaluations before the ending reasons were recorded lack them
+        reasons = np.asarray(episodes["done_reason"])
+        out |= {f"avg_end_{name}": float(np.mean(reasons == code)) for code, name in END_REASONS.items()}
+        out["avg_end_progress_m"] = float(np.mean(episodes["progress"]))
+    return {**out, "episode_returns": [round(float(r), 6) for r in returns]}
