@@ -20,7 +20,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cli_args import IMPORT_HELP, OneLineParser, fail, import_user_modules, non_negative_int, positive_int
 
-from xrl_jax.config import ALGOS, PRESETS, settings_help  # jax-free: --help stays fast
+from xrl_jax.config import PRESETS, TRAINED_ALGOS, settings_help  # jax-free: --help stays fast
 from xrl_jax.config.scenarios import known_envs
 
 PROG = "run.py"
@@ -109,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--import", dest="imports", metavar="MODULE", action="append", default=[], help=IMPORT_HELP
     )
-    parser.add_argument("--algo", choices=ALGOS, default=None, help="agent (default: xsac)")
+    parser.add_argument("--algo", choices=TRAINED_ALGOS, default=None, help="agent (default: xsac)")
     parser.add_argument(
         "--seeds", type=positive_int, default=None, help="independent seeds trained at once (default: 1)"
     )

@@ -207,7 +207,7 @@ def test_evaluate_cli_refuses_what_it_cannot_measure(evaluate_cli, smoke_run, ca
     "args, fragments",
     [
         (["--env", "moon"], ["invalid choice: 'moon'", "tracking", "country_road"]),
-        (["--algo", "ppo"], ["invalid choice: 'ppo'", "xdsac"]),
+        (["--algo", "a2c"], ["invalid choice: 'a2c'", "xdsac", "xdppo"]),
         (["--preset", "huge"], ["invalid choice: 'huge'", "quick"]),
         (["--steps", "-5"], ["positive integer"]),
         (["--steps", "many"], ["positive integer"]),

@@ -55,7 +55,7 @@ def test_register_env_reads_the_layout_off_the_env(example):
     assert BUILT_IN == ENVS and not any(scenario(name).kind == "user_env" for name in ENVS)
     cfg = resolve_config("nearest_goal", "xdsac", "smoke")
     assert cfg.env_name == "nearest_goal" and not cfg.scenario.on_tracks and not cfg.fresh_tracks
-    with pytest.raises(ConfigError, match="discrete actions: train it with dsac or xdsac, not xsac"):
+    with pytest.raises(ConfigError, match="train it with dsac, xdsac, dppo or xdppo, not xsac"):
         resolve_config("nearest_goal", "xsac", "smoke")
 
 

@@ -68,7 +68,7 @@ def test_overrides_reach_train_and_agent_fields():
     "kwargs, overrides, message",
     [
         ({"env": "moon"}, [], "unknown scenario 'moon'; known: country_road, tracking"),
-        ({"algo": "ppo"}, [], "allowed: sac, dsac, xsac, xdsac"),
+        ({"algo": "a2c"}, [], "allowed: sac, dsac, xsac, xdsac, ppo, dppo, xppo, xdppo"),
         ({"preset": "fast"}, [], "allowed: paper, quick, smoke"),
         ({"total_steps": -4}, [], "total_steps must be a positive integer"),
         ({"total_steps": 130}, [], "multiple of num_envs"),

@@ -264,14 +264,18 @@ def ending_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
     return rows
 
 
+# The paper's Table I: continuous Country Road, SAC against XSAC with its weights from each layer.
+TABLE_ONE = ("country_road", ("sac", "xsac"))
+
+
 def table_one_rows(runs: list[Run], policy_costs=None) -> list[dict[str, str]]:
     """The paper's Table I at the runs' scale: SAC and every XSAC run on continuous Country Road, by
     preset, each with its final return (IQM [95 % CI]) and, with ``policy_costs``, its actor's
     parameters and FLOPs per action (as run, and on every cone slot); the paper's numbers beside
     the runs of its protocol. Empty unless some XSAC run takes its weights from an earlier layer
     (``weight_depth``), which is what makes the table."""
-    plain = [r for r in runs
-             if r.cfg.env == "country_road" and not r.is_sweep and r.cfg.algo in ("sac", "xsac")]  # fmt: skip
+    env, algos = TABLE_ONE
+    plain = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.cfg.algo in algos]
     if not any(r.cfg.algo == "xsac" and r.cfg.agent.weight_depth is not None for r in plain):
         return []
     published_rows = json.loads(PAPER_RESULTS.read_text())["table_1_country_road_continuous"]

@@ -40,6 +40,7 @@ from xrl_jax.config.names import (
     SAC_LOG_STD_MIN,
     SWEEPABLE_FIELDS,
     TRACED_FIELDS,
+    TRAINED_ALGOS,
     TRUNCATION_MODES,
 )
 from xrl_jax.config.overrides import apply_overrides, parse_overrides, parse_sweep, parse_value
@@ -86,6 +87,7 @@ __all__ = [
     "SMOKE_SIZES",
     "SWEEPABLE_FIELDS",
     "TRACED_FIELDS",
+    "TRAINED_ALGOS",
     "TRAIN_PRESETS",
     "TRUNCATION_MODES",
     "AgentConfig",

@@ -12,6 +12,7 @@ MIXTURE_ALGOS = ("xsac", "xdsac")
 # Gaussian) and discrete (categorical) actions. Each has an off-policy twin with its actor and policy.
 ON_POLICY_ALGOS = ("ppo", "dppo", "xppo", "xdppo")
 ACTOR_TWIN = {"ppo": "sac", "dppo": "dsac", "xppo": "xsac", "xdppo": "xdsac"}
+TRAINED_ALGOS = (*ALGOS, *ON_POLICY_ALGOS)  # what run.py trains; ALGOS are the paper's (its campaign)
 BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
 FEATURE_EXTRACTORS = ("deepset", "flat_pe")  # names of xrl_jax.networks.make_extractor
 CRITIC_LOSSES = ("huber", "l2")

@@ -10,7 +10,14 @@ from typing import Any
 
 from xrl_jax.config.agent import AgentConfig
 from xrl_jax.config.checks import check_choice
-from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, DISCRETE_ALGOS, MIXTURE_ALGOS, PRESETS
+from xrl_jax.config.names import (
+    ACTOR_TWIN,
+    CONTINUOUS_ALGOS,
+    DISCRETE_ALGOS,
+    MIXTURE_ALGOS,
+    PRESETS,
+    TRAINED_ALGOS,
+)
 from xrl_jax.config.scenarios import scenario
 
 INTERSECTION_ALPHA = 0.015  # fixed entropy coefficient of all four intersection agents (§8.7 there)
@@ -158,13 +165,24 @@ PAPER_AGENTS = {
 QUICK_OPTIMISATION = {"intersection": {"packed_rows": None, **QUICK_INTERSECTION_OPTIMISATION}}
 
 
+# The on-policy family (not in the paper): its twin's networks and discount, PPO's usual optimisation.
+# A rollout of 125 vector steps of 4 envs (500 transitions) fits the racing chunks of 1,000 and 2,000
+# transitions; four minibatches of 125; the smoke preset's 16 x 4 = 64 is its whole chunk.
+ON_POLICY_OPTIMISATION = dict(actor_lr=3e-4, critic_lr=3e-4, clip_norm=0.5, rollout_steps=125, ppo_epochs=4,
+                              ppo_minibatches=4)  # fmt: skip
+ON_POLICY_SMOKE = dict(rollout_steps=16, ppo_epochs=2)
+
+
 def preset(name: str, env: str, algo: str) -> AgentConfig:
     """The agent of preset ``name`` for (env, algo): paper (a user's env: Country Road's); quick =
     width 64 (128 on Tracking but for XDSAC) and, on the single-agent scenarios, the short-budget
     optimisation constants (on the Intersection, every slot computed); smoke = tiny networks."""
     scenario(env)  # an unknown env fails here, saying how a user's env is registered
-    for kind, value, choices in (("preset", name, PRESETS), ("algo", algo, ALGOS)):
+    for kind, value, choices in (("preset", name, PRESETS), ("algo", algo, TRAINED_ALGOS)):
         check_choice("", kind, value, choices)
+    if algo in ACTOR_TWIN:  # the on-policy family: the twin's agent, PPO's optimisation
+        agent = preset(name, env, ACTOR_TWIN[algo]).replace(algo=algo, **ON_POLICY_OPTIMISATION)
+        return agent.replace(**ON_POLICY_SMOKE) if name == "smoke" else agent
     agent = PAPER_AGENTS.get(env, _user_env_agent)(algo)
     if name == "quick":
         agent = agent.replace(**QUICK_SIZES)

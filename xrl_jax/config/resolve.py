@@ -10,7 +10,7 @@ from collections.abc import Mapping
 
 from xrl_jax.config.agent import AgentConfig, field_names
 from xrl_jax.config.checks import ConfigError, check_choice
-from xrl_jax.config.names import ALGOS, PRESETS
+from xrl_jax.config.names import ON_POLICY_ALGOS, PRESETS, TRAINED_ALGOS
 from xrl_jax.config.overrides import apply_overrides, parse_value
 from xrl_jax.config.presets import RUN_LENGTH_PRESETS, preset_train_fields
 from xrl_jax.config.presets import preset as agent_preset  # resolve_config's ``preset`` is a name
@@ -35,9 +35,11 @@ def resolve_config(
     """
     preset_name = preset
     scenario(env)  # an unknown env fails here, saying how a user's env is registered
-    for kind, value, choices in (("algo", algo, ALGOS), ("preset", preset_name, PRESETS)):
+    for kind, value, choices in (("algo", algo, TRAINED_ALGOS), ("preset", preset_name, PRESETS)):
         check_choice("", kind, value, choices)
     fields = preset_train_fields(preset_name, env)
+    if algo in ON_POLICY_ALGOS:
+        fields["warmup_steps"] = 0  # the on-policy agents act by their policy from the first step
     fields.update(env=env, algo=algo, preset=preset_name, num_seeds=num_seeds, sweep=tuple(sweep))
     if total_steps is not None:
         fields["total_steps"] = total_steps
@@ -68,8 +70,12 @@ def resolve_config(
             # Keep every transition, as the paper's protocol does (buffer = steps = 10⁶).
             fields["buffer_size"] = max(fields["total_steps"], fields["batch_size"])
         if "lr_decay_updates" not in agent_changes:
-            # The learning rates reach zero at the last update (one update per transition after warm-up).
+            # The learning rates reach zero at the last update (one update per transition after warm-up;
+            # on-policy: every minibatch of every epoch of every rollout).
             updates = fields["total_steps"] - fields.get("warmup_steps", TrainConfig.warmup_steps)
+            if agent.is_on_policy:
+                rollout = agent.rollout_steps * fields.get("num_envs", TrainConfig.num_envs)
+                updates = fields["total_steps"] // rollout * agent.ppo_epochs * agent.ppo_minibatches
             agent = agent.replace(lr_decay_updates=max(updates, 1))
     try:
         return TrainConfig(agent=agent, **fields)

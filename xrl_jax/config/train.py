@@ -11,7 +11,14 @@ from typing import Any
 
 from xrl_jax.config.agent import AgentConfig
 from xrl_jax.config.checks import ConfigError, check_choice, check_known, is_int, is_number, require, setting
-from xrl_jax.config.names import ALGOS, CONTINUOUS_ALGOS, HOST_ONLY_FIELDS, PRESETS, SWEEPABLE_FIELDS
+from xrl_jax.config.names import (
+    ACTOR_TWIN,
+    CONTINUOUS_ALGOS,
+    HOST_ONLY_FIELDS,
+    PRESETS,
+    SWEEPABLE_FIELDS,
+    TRAINED_ALGOS,
+)
 from xrl_jax.config.scenarios import Scenario, scenario
 
 
@@ -179,13 +186,15 @@ def train_field_names() -> list[str]:
 
 
 def _validate_train(cfg: TrainConfig) -> None:
-    for name, choices in (("algo", ALGOS), ("preset", PRESETS)):
+    for name, choices in (("algo", TRAINED_ALGOS), ("preset", PRESETS)):
         check_choice("", name, getattr(cfg, name), choices)
     actions = cfg.scenario.actions  # raises for an unknown env, saying how a user's env is registered
+    continuous = ACTOR_TWIN.get(cfg.algo, cfg.algo) in CONTINUOUS_ALGOS
     require(
-        actions == "both" or (cfg.algo in CONTINUOUS_ALGOS) == (actions == "continuous"),
+        actions == "both" or continuous == (actions == "continuous"),
         f"{cfg.env} has {actions} actions: train it with "
-        f"{'sac or xsac' if actions == 'continuous' else 'dsac or xdsac'}, not {cfg.algo}",
+        + ("sac, xsac, ppo or xppo" if actions == "continuous" else "dsac, xdsac, dppo or xdppo")
+        + f", not {cfg.algo}",
     )
     require(
         isinstance(cfg.agent, AgentConfig), f"agent must be an AgentConfig, got {type(cfg.agent).__name__}"
@@ -202,7 +211,6 @@ def _validate_train(cfg: TrainConfig) -> None:
         "eval_episodes",
         "checkpoint_interval",
         "track_feed_size",
-        "warmup_steps",
     ):
         require(
             is_int(getattr(cfg, name), 1), f"{name} must be a positive integer, got {getattr(cfg, name)!r}"
@@ -236,7 +244,12 @@ def _validate_train(cfg: TrainConfig) -> None:
             getattr(cfg, name) % cfg.log_interval == 0,
             f"{name} ({getattr(cfg, name)}) must be a multiple of log_interval ({cfg.log_interval})",
         )
-    require(cfg.warmup_steps >= e, f"warmup_steps ({cfg.warmup_steps}) must be at least num_envs ({e})")
+    if cfg.agent.is_on_policy:
+        _validate_on_policy(cfg)
+    else:
+        warmup = cfg.warmup_steps
+        require(is_int(warmup, 1), f"warmup_steps must be a positive integer, got {warmup!r}")
+        require(cfg.warmup_steps >= e, f"warmup_steps ({cfg.warmup_steps}) must be at least num_envs ({e})")
     require(
         cfg.fresh_tracks or not cfg.scenario.on_tracks or cfg.track_seed != cfg.eval_track_seed,
         f"track_seed and eval_track_seed are both {cfg.track_seed}: "
@@ -255,9 +268,35 @@ def _validate_train(cfg: TrainConfig) -> None:
     if cfg.scenario.agent_slots > 1:  # packed transitions: one row per agent
         slots = cfg.scenario.agent_slots
         require(
+            not cfg.agent.is_on_policy,
+            f"{cfg.algo} trains single-agent envs so far; {cfg.env}'s {slots} agent slots need the "
+            "on-policy rollout of agent slots (issue 51)",
+        )
+        require(
             cfg.buffer_size >= slots * e,
             f"buffer_size ({cfg.buffer_size}) must hold one step of all agents ({slots * e})",
         )
+
+
+def _validate_on_policy(cfg: TrainConfig) -> None:
+    """The on-policy family's run: whole rollouts per chunk, minibatches that split a rollout, no
+    warm-up (it acts by its policy from the first step) and no sweep (to come; nor the multi-agent
+    envs, which the agent-slot check of :func:`_validate_train` refuses)."""
+    agent, e = cfg.agent, cfg.num_envs
+    rollout = agent.rollout_steps * e
+    first_step = f"{cfg.algo} acts by its policy from its first step"
+    require(cfg.warmup_steps == 0, f"{first_step}: warmup_steps must be 0, got {cfg.warmup_steps}")
+    for name in ("log_interval", "total_steps"):
+        require(
+            getattr(cfg, name) % rollout == 0,
+            f"{name} ({getattr(cfg, name)}) must be a multiple of one rollout, rollout_steps x num_envs "
+            f"= {agent.rollout_steps} x {e} = {rollout}",
+        )
+    require(
+        rollout % agent.ppo_minibatches == 0,
+        f"a rollout of {rollout} transitions cannot be split into ppo_minibatches={agent.ppo_minibatches}",
+    )
+    require(not cfg.sweep, f"--sweep does not train {cfg.algo} yet: run one configuration per value")
 
 
 def unused_sweep_reason(agent: AgentConfig, name: str) -> str | None:

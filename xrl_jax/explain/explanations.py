@@ -60,7 +60,7 @@ def explain(agent, agent_state, obs: Mapping[str, jax.Array]) -> Explanation:
     ``jax.jit(explain, static_argnums=0)(agent, state, obs)``.
     """
     policy = agent.policy(agent_state.actor_params, obs)
-    is_mixture = agent.config.algo in ("xsac", "xdsac")
+    is_mixture = agent.config.is_mixture
     weights = policy.weights
     present = policy.present
     components_per_object = agent.config.components_per_object if is_mixture else 1

@@ -57,7 +57,9 @@ from jax.sharding import PartitionSpec as P
 from envs.registry import user_factory
 from xrl_jax.agents import Agent, HyperParams, make_hparams
 from xrl_jax.config import TrainConfig
+from xrl_jax.ppo import make_ppo_hparams
 from xrl_jax.sets import MEMBERS_AXIS
+from xrl_jax.train import on_policy
 from xrl_jax.train.episodes import window_means
 from xrl_jax.train.kinds import scenario_kind
 from xrl_jax.train.step import MemberParts, RunState, init_member, member_parts, vector_step
@@ -224,7 +226,10 @@ def get_trainer(cfg: TrainConfig, devices: list | None = None) -> Trainer:
 
 def member_hparams(cfg: TrainConfig, agent: Agent, members: list[int]) -> HyperParams:
     """Each member's traced hyper-parameters (its sweep point's values), stacked on a leading axis."""
-    per_point = [make_hparams(cfg.point_agent(p), agent.action_size) for p in range(cfg.num_points)]
+    if cfg.agent.is_on_policy:
+        per_point = [make_ppo_hparams(cfg.point_agent(p)) for p in range(cfg.num_points)]
+    else:
+        per_point = [make_hparams(cfg.point_agent(p), agent.action_size) for p in range(cfg.num_points)]
     rows = [per_point[cfg.member_point_seed(m)[0]] for m in members]
     return jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *rows)
 
@@ -284,14 +289,16 @@ def chunk_report(parts: MemberParts, state: RunState, outs, start_vector_step) -
     for k, v in outs["metrics"].items():
         average(f"train/{k}", jnp.sum(v), updates)
     metrics["train/updates"] = state.agent.step
-    metrics["train/ent_coef"] = jnp.exp(state.agent.log_alpha)  # the current α: always there
-    has_data.pop("train/ent_coef", None)
+    if not cfg.agent.is_on_policy:
+        metrics["train/ent_coef"] = jnp.exp(state.agent.log_alpha)  # the current α: always there
+        has_data.pop("train/ent_coef", None)
     average("rollout/avg_step_reward", jnp.sum(outs["reward_sum"]), jnp.sum(outs["reward_count"]))
     rollout, window_filled = window_means(state.window, parts.kind.rollout_velocity)
     metrics.update(rollout)
     has_data.update({name: window_filled for name in rollout if name != "rollout/episodes"})
     parts.kind.chunk_metrics(outs, metrics, average)
-    metrics["buffer/stored_rows"] = state.buffer.filled_rows
+    if state.buffer is not None:  # the off-policy family's replay buffer
+        metrics["buffer/stored_rows"] = state.buffer.filled_rows
     # e.g. on fresh tracks: distinct tracks driven so far, and resets that found the feed empty
     metrics.update({f"rollout/{k}": v for k, v in parts.venv.counters(state.venv_state).items()})
     # The first vector step whose update produced a non-finite loss (and which one), whether the
@@ -312,7 +319,8 @@ def chunk_report(parts: MemberParts, state: RunState, outs, start_vector_step) -
 
 
 def chunk_member(parts: MemberParts, state: RunState, start_vector_step):
-    state, outs = scan_chunk(parts, state, start_vector_step)
+    scan = on_policy.scan_chunk if parts.cfg.agent.is_on_policy else scan_chunk
+    state, outs = scan(parts, state, start_vector_step)
     return state, chunk_report(parts, state, outs, start_vector_step)
 
 
@@ -358,6 +366,9 @@ def make_trainer(
     kind = scenario_kind(cfg)
     env, params, eval_params = env_and_params if env_and_params is not None else kind.make_envs(cfg)
     parts = member_parts(cfg, kind, env, params)
+    if cfg.agent.is_on_policy:
+        shapes = on_policy.iteration_metric_shapes(parts.agent, parts.venv, params, parts.obs_example)
+        parts = dataclasses.replace(parts, metric_shapes=shapes)
     mesh = Mesh(np.array(devices if devices is not None else jax.devices()[:1]), (MEMBER_AXIS,))
     members, replicated = P(MEMBER_AXIS), P()
     # check_vma=False: the env and agent code is written for one member and mixes unbatched loop

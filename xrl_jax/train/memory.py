@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 import jax
 import jax.numpy as jnp
 
-from xrl_jax.config import ConfigError, TrainConfig
+from xrl_jax.config import ACTOR_TWIN, ConfigError, TrainConfig
 from xrl_jax.resources import disk_free_bytes, format_bytes, host_memory_available
 from xrl_jax.runs.folder import read_checkpoint_plan, run_paths, write_atomic
 from xrl_jax.train import hosts
@@ -56,10 +56,15 @@ def estimate_seed_bytes(trainer: Trainer) -> dict[str, int]:
     objects = obs.num_objects * cfg.agent.components_per_object
     a = cfg.agent
     per_sample = objects * (a.actor_width * a.actor_depth + a.critic_width * a.critic_depth * a.n_critics)
-    if a.algo == "xsac":
+    if ACTOR_TWIN.get(a.algo, a.algo) == "xsac":  # XSAC and XPPO score every component's sample
         per_sample += objects * objects * trainer.agent.action_size  # the B x K x K x A density tensor
+    observation = obs.state_dim + obs.object_features * obs.num_objects
+    batch, rollout = cfg.batch_size, 0
+    if a.is_on_policy:  # a rollout's transitions in the chunk's temporaries, minibatches of it
+        transitions = a.rollout_steps * cfg.num_envs
+        batch, rollout = transitions // a.ppo_minibatches, 4 * transitions * (2 * observation + 8)
     # float32 activations kept for the backward pass, gradients and XLA temporaries: ~4 copies.
-    workspace = 4 * 4 * cfg.batch_size * (per_sample + obs.state_dim + obs.object_features * obs.num_objects)
+    workspace = 4 * 4 * batch * (per_sample + observation) + rollout
     eval_bytes = 4 * 4 * cfg.eval_episodes * objects * a.actor_width * a.actor_depth
     # The vector env's state (on fresh tracks with the seed's feed), plus what its refill holds.
     refill = trainer.venv.refill_bytes(abstract.venv_state)
@@ -70,7 +75,8 @@ def estimate_seed_bytes(trainer: Trainer) -> dict[str, int]:
         "workspace_estimate": int(workspace + eval_bytes),
     }
     sizes["total"] = sum(sizes.values())
-    sizes["bytes_per_transition"] = round(sizes["buffer"] / abstract.buffer.capacity)
+    if abstract.buffer is not None:
+        sizes["bytes_per_transition"] = round(sizes["buffer"] / abstract.buffer.capacity)
     return sizes
 
 

@@ -14,9 +14,11 @@ from __future__ import annotations
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 from flax import struct
 
 from xrl_jax import losses
+from xrl_jax.train.step import episode_bookkeeping
 
 
 @struct.dataclass
@@ -79,3 +81,80 @@ def iteration(agent, venv, env_params, agent_state, venv_state, obs, key, steps:
     batch = rollout_batch(rollout, hp.gamma, hp.gae_lambda)
     agent_state, metrics = agent.update(update_key, agent_state, batch)
     return agent_state, venv_state, obs, rollout, metrics
+
+
+# ---- the trainer's chunk of the on-policy family ------------------------------------------------------
+
+
+def iteration_metric_shapes(agent, venv, env_params, obs_example):
+    """Shapes of the update metrics of one iteration (the chunk report's names and dtypes)."""
+
+    def metrics(key):
+        state = agent.init(key, obs_example)
+        obs, venv_state = venv.reset(key, env_params)
+        return iteration(agent, venv, env_params, state, venv_state, obs, key, 1)[4]
+
+    return jax.eval_shape(metrics, jax.random.PRNGKey(0))
+
+
+def _bookkeeping(parts, state, rollout: Rollout):
+    """Every step's episode returns, lengths and finished episodes into the run state, in order."""
+
+    def one(state, step):
+        reward, terminated, truncated, velocity = step
+        done = terminated | truncated
+        counted = jnp.ones(done.shape, bool)
+        fields = episode_bookkeeping(parts, state, reward, counted, done, terminated, velocity)
+        return state.replace(**fields), None
+
+    velocity = rollout.info.get("avg_track_velocity", jnp.zeros_like(rollout.reward))
+    steps = (rollout.reward, rollout.terminated, rollout.truncated, velocity)
+    return jax.lax.scan(one, state, steps)[0]
+
+
+def member_iteration(parts, state, t):
+    """One iteration of a member starting at vector step ``t``, as the chunk scans it: the run state
+    after the rollout and its updates, and per vector step the outputs the chunk report reads (the
+    update's metrics at the iteration's last step, weighted by its minibatch updates, so that the
+    report's average over updates is the mean over iterations)."""
+    steps, agent = parts.cfg.agent.rollout_steps, parts.agent
+    key, iteration_key = jax.random.split(state.key)
+    agent_state, venv_state, obs, rollout, metrics = iteration(
+        agent, parts.venv, parts.params, state.agent, state.venv_state, state.obs, iteration_key, steps
+    )
+    state = _bookkeeping(parts, state, rollout)
+    state = state.with_venv_state(venv_state, agent=agent_state, obs=obs, key=key)
+    updates = parts.cfg.agent.ppo_epochs * parts.cfg.agent.ppo_minibatches
+    last = jnp.arange(steps) == steps - 1
+    observations_finite = jax.vmap(lambda o: jnp.all(jnp.stack(
+        [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(o)])))(rollout.info["final_obs"])  # fmt: skip
+    outs = {
+        "reward_sum": jnp.sum(jnp.where(rollout.truncated, 0.0, rollout.reward), axis=1),
+        "reward_count": jnp.sum(~rollout.truncated, axis=1, dtype=jnp.int32),
+        "metrics": jax.tree.map(lambda m: jnp.where(last, m * updates, 0).astype(m.dtype), metrics),
+        "updates": jnp.where(last, updates, 0).astype(jnp.int32),
+        "env_nonfinite": (~jnp.all(jnp.isfinite(rollout.reward), axis=1)).astype(jnp.int32)
+        + 2 * (~observations_finite).astype(jnp.int32),
+    }
+    return state, outs
+
+
+def scan_chunk(parts, state, start_vector_step):
+    """The chunk's iterations (``chunk_vector_steps / rollout_steps``) as one ``lax.scan``; in a partial
+    last chunk the iterations past the run's end are skipped (a real ``lax.cond``). Outputs per
+    vector step, as the off-policy chunk's."""
+    cfg = parts.cfg
+    steps = cfg.agent.rollout_steps
+    count = cfg.chunk_vector_steps // steps
+    step = lambda state, t: member_iteration(parts, state, t)
+
+    def body(state, i):
+        t = start_vector_step + i * steps
+        if cfg.total_steps % cfg.log_interval == 0:
+            return step(state, t)
+        skip = lambda state, t: (state, jax.tree.map(
+            lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(step, state, t)[1]))
+        return jax.lax.cond(t < cfg.total_vector_steps, step, skip, state, t)
+
+    state, outs = jax.lax.scan(body, state, jnp.arange(count, dtype=jnp.int32))
+    return state, jax.tree.map(lambda x: x.reshape((count * steps, *x.shape[2:])), outs)

@@ -27,6 +27,7 @@ from xrl_jax.agents import Agent, AgentState, make_agent
 from xrl_jax.buffer import ReplayBuffer, buffer_init, buffer_sample
 from xrl_jax.config import TrainConfig
 from xrl_jax.evaluation import EARLY_TERMINATION_REWARD
+from xrl_jax.ppo import make_ppo_agent
 from xrl_jax.train.episodes import EpisodeWindow, window_add, window_init
 
 
@@ -92,7 +93,12 @@ def member_parts(cfg: TrainConfig, kind, env, params) -> MemberParts:
     actors = (cfg.num_envs, *slots)
     obs_shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[len(slots) :], s.dtype), obs_shapes)
     obs_example = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), obs_shapes)
-    agent = make_agent(cfg.agent, obs_example, action_size(env.action_space(params)))
+    actions = action_size(env.action_space(params))
+    if cfg.agent.is_on_policy:  # its chunk (xrl_jax.train.on_policy) fills in the metric shapes
+        agent = make_ppo_agent(cfg.agent, obs_example, actions)
+        venv = kind.vector_env(cfg, env)
+        return MemberParts(cfg, kind, venv, params, agent, obs_example, actors, jnp.result_type(float))
+    agent = make_agent(cfg.agent, obs_example, actions)
     venv = kind.vector_env(cfg, env)
     parts = MemberParts(cfg, kind, venv, params, agent, obs_example, actors, jnp.result_type(float))
     abstract_agent = jax.eval_shape(agent.init, jax.random.PRNGKey(0), obs_example)
@@ -122,7 +128,7 @@ def init_member(parts: MemberParts, base_seed, index, hparams) -> RunState:
     env_state, feed = split_states(venv_state)
     return RunState(
         agent=parts.agent.init(agent_key, parts.obs_example, hparams),
-        buffer=new_buffer(parts, cfg.buffer_size),
+        buffer=None if cfg.agent.is_on_policy else new_buffer(parts, cfg.buffer_size),  # on-policy: rollouts
         env_state=env_state,
         feed=feed,
         obs=obs,

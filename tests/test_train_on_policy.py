@@ -1,0 +1,74 @@
+"""The on-policy family through the trainer (run.py --algo ppo|dppo|xppo|xdppo): a smoke run leaves a
+complete results folder with the family's metrics, a stopped run resumed equals an uninterrupted one,
+the explanation figure reads a trained XDPPO agent, and what it cannot train yet is refused in one line."""
+
+import functools
+import json
+
+import pytest
+from train_support import load_script
+
+from xrl_jax import train as train_mod
+from xrl_jax.config import ConfigError, resolve_config
+
+SMOKE = ["--env", "tracking", "--algo", "xdppo", "--preset", "smoke", "--seeds", "2", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def run():
+    return load_script("run", "run_cli_on_policy")
+
+
+def call(module, capsys, *args):
+    status = module.main(list(args))
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def files_of(folder, sub):
+    return {p.name: p.read_text() for p in sorted((folder / sub).iterdir())}
+
+
+def test_a_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, capsys, monkeypatch):
+    """Rollouts of 16 vector steps x 4 envs are the smoke chunk of 64 transitions; the checkpoint at
+    128 holds the agent, its optimiser states and the envs mid-episode."""
+    args = [*SMOKE, "--steps", "256", "--set", "checkpoint_interval=128"]
+    full, split = tmp_path / "full", tmp_path / "split"
+    assert call(run, capsys, *args, "--out", str(full))[0] == 0
+    original = train_mod.train
+    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=3))
+    status, _, err = call(run, capsys, *args, "--out", str(split))
+    assert status == 1 and "--resume" in err
+    monkeypatch.setattr(train_mod, "train", original)
+    status, out, _ = call(run, capsys, "--resume", str(split), "--quiet")
+    assert status == 0 and "final return" in out
+    assert files_of(split, "metrics") == files_of(full, "metrics")
+    assert files_of(split, "eval") == files_of(full, "eval")
+    rows = [json.loads(line) for line in (full / "metrics" / "seed_0.jsonl").read_text().splitlines()]
+    # A rollout per chunk, each 2 epochs x 4 minibatches.
+    assert [row["train/updates"] for row in rows] == [8, 16, 24, 32]
+    expected = {"train/loss_policy", "train/loss_value", "train/approx_kl", "train/mixture_entropy"}
+    assert expected <= set(rows[-1])
+    assert "train/ent_coef" not in rows[-1] and "buffer/stored_rows" not in rows[-1]
+    explain = load_script("explain", "explain_cli_on_policy")
+    assert call(explain, capsys, "--run", str(full), "--step", "5")[0] == 0
+    assert list((full / "explain").glob("*.png"))
+
+
+@pytest.mark.parametrize(
+    "env, algo, overrides, message",
+    [
+        ("intersection", "xdppo", {}, "trains single-agent envs so far"),
+        ("tracking", "xdppo", {"warmup_steps": "64"}, "warmup_steps must be 0"),
+        ("tracking", "xdppo", {"rollout_steps": "10"}, "must be a multiple of one rollout"),
+        ("tracking", "xdppo", {"ppo_minibatches": "5"}, "cannot be split into ppo_minibatches=5"),
+        ("tracking", "xppo", {}, None),  # continuous Tracking: accepted
+        ("country_road", "dppo", {}, None),
+    ],
+)
+def test_what_the_on_policy_trainer_cannot_train_yet_is_refused_in_one_line(env, algo, overrides, message):
+    if message is None:
+        assert resolve_config(env, algo, "smoke", overrides=overrides).agent.is_on_policy
+        return
+    with pytest.raises(ConfigError, match=message):
+        resolve_config(env, algo, "smoke", overrides=overrides)
