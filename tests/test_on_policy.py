@@ -5,6 +5,7 @@ advantages by GAE, and the whole iteration under vmap over members."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from fast_env import MAX_STEPS, FastEnv
 
 from envs.core import vmap_env
@@ -44,6 +45,7 @@ def test_a_truncated_step_bootstraps_from_its_ending_observation_not_the_next_ep
     np.testing.assert_allclose(ending_time, 1.0, atol=1e-6)
 
 
+@pytest.mark.slow  # the GAE itself is tested against NumPy in the default tier (tests/test_losses_ppo.py)
 def test_the_update_batch_is_the_flattened_rollout_with_its_gae():
     agent, venv = setup()
     state = agent.init(jax.random.PRNGKey(0), EXAMPLE)

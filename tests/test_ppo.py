@@ -15,9 +15,12 @@ from xrl_jax.config import ON_POLICY_ALGOS, AgentConfig
 from xrl_jax.ppo import ROLLOUT_KEYS, make_ppo_agent
 
 EXAMPLE = {"state": jnp.zeros(STATE_DIM), "objects_set": jnp.zeros((NUM_OBJECTS, 3))}
-# The mixture agents in the default tier (their code path includes the one-object case), the plain
-# ones in the slow tier.
-EVERY_ALGO = [pytest.param(a, marks=pytest.mark.slow) if a in ("ppo", "dppo") else a for a in ON_POLICY_ALGOS]
+
+
+def in_default_tier(*algos):
+    """``ON_POLICY_ALGOS`` as parameters, those not named in the slow tier (each test keeps one or two
+    agents in the default tier: the mixtures' code path includes the one-object case)."""
+    return [a if a in algos else pytest.param(a, marks=pytest.mark.slow) for a in ON_POLICY_ALGOS]
 
 
 def ppo_config(algo: str, **changes) -> AgentConfig:
@@ -48,7 +51,7 @@ def bandit_batch(agent, state, key, size, discrete):
     return batch, reward
 
 
-@pytest.mark.parametrize("algo", EVERY_ALGO)
+@pytest.mark.parametrize("algo", in_default_tier("xdppo"))
 def test_rollout_and_update_have_the_right_shapes_and_stay_finite_under_vmap(algo):
     agent, discrete = make(algo)
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
@@ -77,7 +80,7 @@ def test_rollout_and_update_have_the_right_shapes_and_stay_finite_under_vmap(alg
         assert np.all(np.asarray(metrics["mixture_entropy"]) > 0.5)
 
 
-@pytest.mark.parametrize("algo", EVERY_ALGO)
+@pytest.mark.parametrize("algo", in_default_tier("xppo"))  # the Gaussian ratio is the subtle one
 def test_the_stored_log_probability_is_the_policys_at_the_stored_sample(algo):
     """Before any update the ratio is 1: the rollout's log π(sample) equals the policy's own, so the
     first minibatch's clipped surrogate starts from ρ = 1 (same computation: equal to rounding)."""
@@ -132,7 +135,9 @@ def train_bandit(algo: str, rounds: int, seed: int = 0):
 # A uniformly random discrete action earns 1/3 on average, a random continuous one about -0.55 (the
 # squared error against 0.8·signal, signal uniform in [-1, 1]); the mixture weight on the informative
 # one of 4 objects starts at 1/4.
-@pytest.mark.parametrize("algo, reward_above", [("xdppo", 0.9), ("xppo", -0.08)])
+@pytest.mark.parametrize(
+    "algo, reward_above", [("xdppo", 0.9), pytest.param("xppo", -0.08, marks=pytest.mark.slow)]
+)
 def test_xppo_learns_the_probe_and_explains_it_with_the_informative_object(algo, reward_above):
     result = train_bandit(algo, rounds=150)
     assert result["reward"] > reward_above, result

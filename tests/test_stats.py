@@ -119,6 +119,7 @@ def test_iqm_interval_coverage_below_five_seeds_is_the_closed_form(runs):
     assert abs(iqm_interval_coverage(runs) - exact) <= _binomial_tolerance(exact, COVERAGE_TRIALS)
 
 
+@pytest.mark.slow  # ~5-8 s: 300 bootstraps; the closed-form coverage test stays in the default tier
 def test_iqm_interval_coverage_at_eight_seeds_agrees_with_the_interval_the_reports_print():
     """The vectorised Monte Carlo against stratified_bootstrap_ci itself, called on 300 independent
     normal samples: two estimates of one coverage, within four standard errors of their difference."""
@@ -137,6 +138,7 @@ def test_iqm_interval_coverage_at_eight_seeds_agrees_with_the_interval_the_repor
     assert 0.85 < fast < 0.97  # the percentile bootstrap's known shortfall at few seeds: below 95 %
 
 
+@pytest.mark.slow  # ~5-8 s: 300 bootstraps; the closed-form coverage test stays in the default tier
 def test_improvement_interval_coverage_without_a_difference():
     """One seed each: every resample gives 0 or 1, never an interval that holds 0.5; at 4 vs 4 the
     vectorised estimate agrees with probability_of_improvement_ci itself on 300 independent samples."""

@@ -50,9 +50,15 @@ def test_a_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, ca
     expected = {"train/loss_policy", "train/loss_value", "train/approx_kl", "train/mixture_entropy"}
     assert expected <= set(rows[-1])
     assert "train/ent_coef" not in rows[-1] and "buffer/stored_rows" not in rows[-1]
+
+
+@pytest.mark.slow  # a smoke run and the figure (~20 s); the explain CLI of the SAC family runs by default
+def test_the_explanation_figure_reads_a_trained_xdppo_agent(run, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert call(run, capsys, *SMOKE, "--out", str(out))[0] == 0
     explain = load_script("explain", "explain_cli_on_policy")
-    assert call(explain, capsys, "--run", str(full), "--step", "5")[0] == 0
-    assert list((full / "explain").glob("*.png"))
+    assert call(explain, capsys, "--run", str(out), "--step", "5")[0] == 0
+    assert list((out / "explain").glob("*.png"))
 
 
 @pytest.mark.parametrize(

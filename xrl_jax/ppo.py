@@ -168,7 +168,7 @@ class PPOAgent:
 
     def act(self, key: Array, state: PPOState, obs: Mapping[str, Array], mode: str = "train") -> Array:
         """"train" and "stochastic": a sample of π; "deterministic": greedy; "eval": as the twin is
-        evaluated (greedy, XPPO like XSAC a sample, §7.2.5)."""
+        evaluated (greedy, XPPO like XSAC a sample: docs/algorithms.md §7.2.5)."""
         if mode not in ACT_MODES:
             raise ValueError(f"unknown act mode {mode!r}; valid modes: {', '.join(ACT_MODES)}")
         policy = self.networks.policy
