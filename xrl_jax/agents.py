@@ -96,27 +96,11 @@ def _as_float_mask(x: Array) -> Array:
     return jnp.asarray(x).astype(jnp.result_type(float))
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class Agent:
-    """One of SAC / DSAC / XSAC / XDSAC. Build with :func:`make_agent`; all methods are pure."""
+class PolicyActing:
+    """What every agent that acts through ``networks``' actor and policy offers, off-policy (SAC family)
+    or on-policy (:mod:`xrl_jax.ppo`): its names, the policy as a mixture distribution, raw actor
+    outputs and random actions. Needs ``config``, ``networks`` and ``action_space``."""
 
-    config: AgentConfig
-    networks: Networks
-    obs_shape: ObservationShape
-    action_size: int  # A (continuous) or N (discrete)
-    action_space: ContinuousActions | DiscreteActions = dataclasses.field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        # The one place where the agent tells the algorithms apart: continuous or discrete actions.
-        # What a mixture adds comes with the policy of its actor (``networks.policy``).
-        cfg = self.config
-        if cfg.is_discrete:
-            space = DiscreteActions(self.action_size, cfg.resolved_epsilon_random())
-        else:
-            space = ContinuousActions(self.action_size)
-        object.__setattr__(self, "action_space", space)
-
-    # ---- static helpers ---------------------------------------------------------------------
     @property
     def algo(self) -> str:
         return self.config.algo
@@ -138,60 +122,20 @@ class Agent:
         """
         return self.networks.num_mixture_objects
 
-    @property
-    def _actor_tx(self) -> optax.GradientTransformation:
-        # Reference (§1.4): with clip_norm set, SAC clips only the critic; DSAC/XSAC/XDSAC clip actor and
-        # critic; α is never clipped. The intersection SAC preset sets clip_norm=None: no clipping at all.
-        return adam(self.config.clip_norm if self.networks.policy.clips_actor_grads else None)
-
-    @property
-    def _critic_tx(self) -> optax.GradientTransformation:
-        return adam(self.config.clip_norm)
-
-    @property
-    def _alpha_tx(self) -> optax.GradientTransformation:
-        return adam(None)
-
     def dummy_observation(self, batch_shape: tuple[int, ...] = ()) -> dict[str, Array]:
         return self.networks.dummy_observation(batch_shape)
 
-    # ---- init -------------------------------------------------------------------------------
-    def init(
-        self, key: Array, obs_example: Mapping[str, Array] | None = None, hparams: HyperParams | None = None
-    ) -> AgentState:
-        """Fresh parameters, optimiser states, log α = log α₀ and step 0.
-
-        `obs_example` (one unbatched observation; default zeros of the agent's layout) only fixes
-        shapes. Actor and critic use independent keys (the reference's shared-key quirk for
-        DSAC/X agents is not reproduced, §2.2). `hparams` overrides the config's traced values.
-        """
+    def checked_obs_example(self, obs_example: Mapping[str, Array] | None) -> Mapping[str, Array]:
+        """``obs_example`` (default zeros of the agent's layout), refused if its layout differs."""
         if obs_example is None:
-            obs_example = self.dummy_observation()
-        elif observation_shape(obs_example) != self.obs_shape:
+            return self.dummy_observation()
+        if observation_shape(obs_example) != self.obs_shape:
             raise ValueError(
                 f"obs_example layout {observation_shape(obs_example)} differs from the agent's "
                 f"{self.obs_shape}"
             )
-        actor_key, critic_key = jax.random.split(key)
-        actor_params = self.networks.actor.init(actor_key, obs_example)
-        critic_inputs = self.action_space.critic_inputs(obs_example, self.networks.dummy_action())
-        critic_params = self.networks.critic.init(critic_key, *critic_inputs)
-        if hparams is None:
-            hparams = make_hparams(self.config, self.action_size)
-        log_alpha = jnp.asarray(hparams.init_log_alpha)
-        return AgentState(
-            actor_params=actor_params,
-            critic_params=critic_params,
-            target_critic_params=jax.tree_util.tree_map(jnp.array, critic_params),
-            log_alpha=log_alpha,
-            actor_opt_state=self._actor_tx.init(actor_params),
-            critic_opt_state=self._critic_tx.init(critic_params),
-            alpha_opt_state=self._alpha_tx.init(log_alpha),
-            step=jnp.zeros((), jnp.int32),
-            hparams=hparams,
-        )
+        return obs_example
 
-    # ---- policy -----------------------------------------------------------------------------
     def policy(
         self, actor_params: Any, obs: Mapping[str, Array]
     ) -> SquashedGaussianMixture | CategoricalMixture:
@@ -213,6 +157,72 @@ class Agent:
     def random_action(self, key: Array, batch_shape: tuple[int, ...] = ()) -> Array:
         """Uniform random action (warm-up, ε-exploration)."""
         return self.action_space.random(key, batch_shape)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Agent(PolicyActing):
+    """One of SAC / DSAC / XSAC / XDSAC. Build with :func:`make_agent`; all methods are pure."""
+
+    config: AgentConfig
+    networks: Networks
+    obs_shape: ObservationShape
+    action_size: int  # A (continuous) or N (discrete)
+    action_space: ContinuousActions | DiscreteActions = dataclasses.field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        # The one place where the agent tells the algorithms apart: continuous or discrete actions.
+        # What a mixture adds comes with the policy of its actor (``networks.policy``).
+        cfg = self.config
+        if cfg.is_discrete:
+            space = DiscreteActions(self.action_size, cfg.resolved_epsilon_random())
+        else:
+            space = ContinuousActions(self.action_size)
+        object.__setattr__(self, "action_space", space)
+
+    # ---- static helpers ---------------------------------------------------------------------
+    @property
+    def _actor_tx(self) -> optax.GradientTransformation:
+        # Reference (§1.4): with clip_norm set, SAC clips only the critic; DSAC/XSAC/XDSAC clip actor and
+        # critic; α is never clipped. The intersection SAC preset sets clip_norm=None: no clipping at all.
+        return adam(self.config.clip_norm if self.networks.policy.clips_actor_grads else None)
+
+    @property
+    def _critic_tx(self) -> optax.GradientTransformation:
+        return adam(self.config.clip_norm)
+
+    @property
+    def _alpha_tx(self) -> optax.GradientTransformation:
+        return adam(None)
+
+    # ---- init -------------------------------------------------------------------------------
+    def init(
+        self, key: Array, obs_example: Mapping[str, Array] | None = None, hparams: HyperParams | None = None
+    ) -> AgentState:
+        """Fresh parameters, optimiser states, log α = log α₀ and step 0.
+
+        `obs_example` (one unbatched observation; default zeros of the agent's layout) only fixes
+        shapes. Actor and critic use independent keys (the reference's shared-key quirk for
+        DSAC/X agents is not reproduced, §2.2). `hparams` overrides the config's traced values.
+        """
+        obs_example = self.checked_obs_example(obs_example)
+        actor_key, critic_key = jax.random.split(key)
+        actor_params = self.networks.actor.init(actor_key, obs_example)
+        critic_inputs = self.action_space.critic_inputs(obs_example, self.networks.dummy_action())
+        critic_params = self.networks.critic.init(critic_key, *critic_inputs)
+        if hparams is None:
+            hparams = make_hparams(self.config, self.action_size)
+        log_alpha = jnp.asarray(hparams.init_log_alpha)
+        return AgentState(
+            actor_params=actor_params,
+            critic_params=critic_params,
+            target_critic_params=jax.tree_util.tree_map(jnp.array, critic_params),
+            log_alpha=log_alpha,
+            actor_opt_state=self._actor_tx.init(actor_params),
+            critic_opt_state=self._critic_tx.init(critic_params),
+            alpha_opt_state=self._alpha_tx.init(log_alpha),
+            step=jnp.zeros((), jnp.int32),
+            hparams=hparams,
+        )
 
     def act(self, key: Array, state: AgentState, obs: Mapping[str, Array], mode: str = "train") -> Array:
         """An action for `obs` (any leading batch axes).

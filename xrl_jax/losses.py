@@ -316,9 +316,9 @@ def ppo_policy_loss(
     ratio = jnp.exp(log_ratio)
     unclipped = ratio * advantages
     clipped = jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages
-    loss = -_mean(jnp.minimum(unclipped, clipped), weight)
-    clipped_share = _mean((jnp.abs(ratio - 1.0) > clip_eps).astype(ratio.dtype), weight)
-    approx_kl = _mean((ratio - 1.0) - log_ratio, weight)
+    loss = -weighted_mean(jnp.minimum(unclipped, clipped), weight)
+    clipped_share = weighted_mean((jnp.abs(ratio - 1.0) > clip_eps).astype(ratio.dtype), weight)
+    approx_kl = weighted_mean((ratio - 1.0) - log_ratio, weight)
     stop = jax.lax.stop_gradient
     return loss, {"loss_policy": loss, "clip_fraction": stop(clipped_share), "approx_kl": stop(approx_kl)}
 
@@ -336,7 +336,7 @@ def ppo_value_loss(
     if clip_eps is not None:
         moved = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
         error = jnp.maximum(error, jnp.square(moved - targets))
-    loss = 0.5 * _mean(error, weight)
+    loss = 0.5 * weighted_mean(error, weight)
     return loss, {"loss_value": loss}
 
 
@@ -357,15 +357,9 @@ def xppo_actor_loss(
     PPO is the one-object case, where H(w) = 0."""
     surrogate, metrics = ppo_policy_loss(log_ratio, advantages, clip_eps, weight)
     weights_entropy = clipped_entropy(weights)
-    loss = surrogate - entropy_coef * _mean(entropy, weight) - kappa * _mean(weights_entropy, weight)
+    mean_entropy = weighted_mean(entropy, weight)
+    mean_weights_entropy = weighted_mean(weights_entropy, weight)
+    loss = surrogate - entropy_coef * mean_entropy - kappa * mean_weights_entropy
     stop = jax.lax.stop_gradient
-    return loss, {**metrics, "loss_actor": loss, "entropy_mean": stop(_mean(entropy, weight)),
-                  "mixture_entropy": stop(_mean(weights_entropy, weight))}  # fmt: skip
-
-
-def _mean(values: jax.Array, weight: jax.Array | None) -> jax.Array:
-    """Mean over every axis, of the used entries (``weight`` 1) where given; 0 when none is used."""
-    if weight is None:
-        return jnp.mean(values)
-    weight = jnp.broadcast_to(weight, values.shape).astype(values.dtype)
-    return jnp.sum(values * weight) / jnp.maximum(jnp.sum(weight), 1.0)
+    return loss, {**metrics, "loss_actor": loss, "entropy_mean": stop(mean_entropy),
+                  "mixture_entropy": stop(mean_weights_entropy)}  # fmt: skip

@@ -40,10 +40,10 @@ from flax import struct
 from xrl_jax import losses
 from xrl_jax.action_spaces import ContinuousActions, DiscreteActions
 from xrl_jax.agent_state import adam, adam_step
-from xrl_jax.agents import ACT_MODES, observation_shape
+from xrl_jax.agents import ACT_MODES, PolicyActing, observation_shape
 from xrl_jax.config import ACTOR_TWIN, AgentConfig
 from xrl_jax.critics import ValueNetwork
-from xrl_jax.distributions import CategoricalMixture, SquashedGaussianMixture
+from xrl_jax.distributions import CategoricalMixture
 from xrl_jax.networks import Networks, make_extractor, make_networks, set_packing
 
 Array = jax.Array
@@ -84,7 +84,7 @@ def make_ppo_hparams(config: AgentConfig) -> PPOHyperParams:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class PPOAgent:
+class PPOAgent(PolicyActing):
     """PPO / DPPO / XPPO / XDPPO. Build with :func:`make_ppo_agent`; all methods are pure."""
 
     config: AgentConfig
@@ -94,14 +94,6 @@ class PPOAgent:
     action_size: int
 
     @property
-    def algo(self) -> str:
-        return self.config.algo
-
-    @property
-    def is_discrete(self) -> bool:
-        return self.config.is_discrete
-
-    @property
     def action_space(self) -> ContinuousActions | DiscreteActions:
         """Random actions; PPO explores by its own policy, so without ε."""
         if self.is_discrete:
@@ -109,19 +101,8 @@ class PPOAgent:
         return ContinuousActions(self.action_size)
 
     @property
-    def num_mixture_objects(self) -> int:
-        return self.networks.num_mixture_objects
-
-    @property
-    def neutral_object(self) -> bool:
-        return self.config.neutral_object
-
-    @property
     def _tx(self):
         return adam(self.config.clip_norm)
-
-    def dummy_observation(self, batch_shape: tuple[int, ...] = ()) -> dict[str, Array]:
-        return self.networks.dummy_observation(batch_shape)
 
     # ---- state ----------------------------------------------------------------------------------
     def init(
@@ -130,11 +111,7 @@ class PPOAgent:
         obs_example: Mapping[str, Array] | None = None,
         hparams: PPOHyperParams | None = None,
     ) -> PPOState:
-        if obs_example is None:
-            obs_example = self.dummy_observation()
-        elif observation_shape(obs_example) != self.obs_shape:
-            layout = observation_shape(obs_example)
-            raise ValueError(f"obs_example layout {layout} differs from the agent's {self.obs_shape}")
+        obs_example = self.checked_obs_example(obs_example)
         actor_key, value_key = jax.random.split(key)
         actor_params = self.networks.actor.init(actor_key, obs_example)
         value_params = self.value_network.init(value_key, obs_example)
@@ -148,23 +125,8 @@ class PPOAgent:
         )
 
     # ---- acting ---------------------------------------------------------------------------------
-    def policy(
-        self, actor_params: Any, obs: Mapping[str, Array]
-    ) -> SquashedGaussianMixture | CategoricalMixture:
-        """π(·|s); the X agents' ``weights`` are the explanation."""
-        return self.networks.policy.distribution(self.networks.actor.apply(actor_params, obs))
-
-    def actor_output(self, actor_params: Any, obs: Mapping[str, Array]) -> Any:
-        return self.networks.actor.apply(actor_params, obs)
-
-    def policy_from_output(self, out: Any) -> SquashedGaussianMixture | CategoricalMixture:
-        return self.networks.policy.distribution(out)
-
     def value(self, value_params: Any, obs: Mapping[str, Array]) -> Array:
         return self.value_network.apply(value_params, obs)
-
-    def random_action(self, key: Array, batch_shape: tuple[int, ...] = ()) -> Array:
-        return self.action_space.random(key, batch_shape)
 
     def act(self, key: Array, state: PPOState, obs: Mapping[str, Array], mode: str = "train") -> Array:
         """"train" and "stochastic": a sample of π; "deterministic": greedy; "eval": as the twin is

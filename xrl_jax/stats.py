@@ -178,16 +178,13 @@ def iqm_interval_coverage(runs: int, confidence: float = 0.95, seed: int = 0) ->
     symmetrically. Below 5 runs the interval is [lowest, highest] and the coverage 1 - 2**(1 - runs)."""
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
-    _check_bootstrap(confidence, COVERAGE_RESAMPLES)
-    rng = np.random.default_rng(seed)
-    covered = 0
-    for _ in range(COVERAGE_TRIALS // _TRIAL_CHUNK):
+
+    def replicates(rng):
         samples = rng.standard_normal((_TRIAL_CHUNK, 1, runs))
         rows = rng.integers(0, runs, size=(_TRIAL_CHUNK, COVERAGE_RESAMPLES, runs))
-        replicates = _iqm_last_axis(np.take_along_axis(samples, rows, axis=-1))
-        low, high = _percentiles_last_axis(replicates, confidence)
-        covered += int(np.sum((low <= 0.0) & (high >= 0.0)))
-    return covered / COVERAGE_TRIALS
+        return _iqm_last_axis(np.take_along_axis(samples, rows, axis=-1))
+
+    return _coverage(replicates, 0.0, confidence, seed)
 
 
 @lru_cache(maxsize=256)
@@ -198,16 +195,25 @@ def improvement_interval_coverage(runs_x: int, runs_y: int, confidence: float = 
     would call a difference where there is none."""
     if runs_x < 1 or runs_y < 1:
         raise ValueError(f"runs must be >= 1, got {runs_x} and {runs_y}")
-    _check_bootstrap(confidence, COVERAGE_RESAMPLES)
-    rng = np.random.default_rng(seed)
-    covered = 0
-    for _ in range(COVERAGE_TRIALS // _TRIAL_CHUNK):
+
+    def replicates(rng):
         x = rng.standard_normal((_TRIAL_CHUNK, 1, runs_x))
         y = rng.standard_normal((_TRIAL_CHUNK, 1, runs_y))
         xs = np.take_along_axis(x, rng.integers(0, runs_x, (_TRIAL_CHUNK, COVERAGE_RESAMPLES, runs_x)), -1)
         ys = np.take_along_axis(y, rng.integers(0, runs_y, (_TRIAL_CHUNK, COVERAGE_RESAMPLES, runs_y)), -1)
         pairs = xs[..., :, None] - ys[..., None, :]
-        replicates = np.mean((pairs > 0) + 0.5 * (pairs == 0), axis=(-2, -1))
-        low, high = _percentiles_last_axis(replicates, confidence)
-        covered += int(np.sum((low <= 0.5) & (high >= 0.5)))
+        return np.mean((pairs > 0) + 0.5 * (pairs == 0), axis=(-2, -1))
+
+    return _coverage(replicates, 0.5, confidence, seed)
+
+
+def _coverage(replicates, truth: float, confidence: float, seed: int) -> float:
+    """The share of :data:`COVERAGE_TRIALS` trials whose percentile interval holds ``truth``;
+    ``replicates(rng)`` draws :data:`_TRIAL_CHUNK` trials' bootstrap replicates, (chunk, resamples)."""
+    _check_bootstrap(confidence, COVERAGE_RESAMPLES)
+    rng = np.random.default_rng(seed)
+    covered = 0
+    for _ in range(COVERAGE_TRIALS // _TRIAL_CHUNK):
+        low, high = _percentiles_last_axis(replicates(rng), confidence)
+        covered += int(np.sum((low <= truth) & (high >= truth)))
     return covered / COVERAGE_TRIALS

@@ -62,13 +62,7 @@ from xrl_jax.sets import MEMBERS_AXIS
 from xrl_jax.train import on_policy
 from xrl_jax.train.episodes import window_means
 from xrl_jax.train.kinds import scenario_kind
-from xrl_jax.train.step import MemberParts, RunState, init_member, member_parts, vector_step
-
-
-def tree_all_finite(tree) -> jax.Array:
-    """True when every floating-point leaf of ``tree`` is finite (one fused reduction)."""
-    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(jnp.result_type(x), jnp.floating)]
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.bool_(True)
+from xrl_jax.train.step import MemberParts, RunState, init_member, member_parts, tree_all_finite, vector_step
 
 
 def _update_metric_order(metrics) -> list[str]:

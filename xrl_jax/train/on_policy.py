@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from xrl_jax import losses
-from xrl_jax.train.step import episode_bookkeeping
+from xrl_jax.train.step import episode_bookkeeping, tree_all_finite
 
 
 @struct.dataclass
@@ -126,8 +126,7 @@ def member_iteration(parts, state, t):
     state = state.with_venv_state(venv_state, agent=agent_state, obs=obs, key=key)
     updates = parts.cfg.agent.ppo_epochs * parts.cfg.agent.ppo_minibatches
     last = jnp.arange(steps) == steps - 1
-    observations_finite = jax.vmap(lambda o: jnp.all(jnp.stack(
-        [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(o)])))(rollout.info["final_obs"])  # fmt: skip
+    observations_finite = jax.vmap(tree_all_finite)(rollout.info["final_obs"])  # per vector step
     outs = {
         "reward_sum": jnp.sum(jnp.where(rollout.truncated, 0.0, rollout.reward), axis=1),
         "reward_count": jnp.sum(~rollout.truncated, axis=1, dtype=jnp.int32),

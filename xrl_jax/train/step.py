@@ -190,6 +190,12 @@ def act_and_step(parts: MemberParts, state: RunState, t):
     return key, update_key, agent_state, action, warm_env, step
 
 
+def tree_all_finite(tree) -> jax.Array:
+    """True when every floating-point leaf of ``tree`` is finite (one fused reduction)."""
+    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(jnp.result_type(x), jnp.floating)]
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.bool_(True)
+
+
 def episode_bookkeeping(parts: MemberParts, state: RunState, reward, counted, done, terminated, velocity):
     """Per-actor running episode return and length (actors: envs, or env × vehicle slot);
     finished episodes enter the rolling window and restart from zero."""
