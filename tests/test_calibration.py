@@ -6,6 +6,7 @@ for its estimate before its first chunk."""
 import json
 import os
 import shutil
+import time
 
 import pytest
 from train_support import fast_env_registered, prepare_cache
@@ -128,14 +129,16 @@ def test_a_cached_calibration_is_told_before_the_chunks_and_its_long_run_warning
     from xrl_jax.train.clock import RunClock
     from xrl_jax.train.console import Console
 
-    cfg = quick()  # 4 seeds, 320k steps: 80k vector steps at 2 s are 44 hours, beyond a day
+    cfg = quick()  # 4 seeds, 320k steps: 80k vector steps at 2 s, evaluations and setup: 44.3 h, beyond a day
     C.store_calibration(C.calibration_key(cfg, 4, 1), dict(RATES, vector_step_s=2.0, created="2026-01-02T03"))
     lines, warnings = [], []
-    console = Console(cfg, lines.append, warnings.append, enabled=False, backend="cpu", start_time=0.0)
+    console = Console(
+        cfg, lines.append, warnings.append, enabled=False, backend="cpu", start_time=time.perf_counter()
+    )
     console.estimate_calibrated([[0, 1, 2, 3]], 1, 0, 0)
     console.estimate_calibrated([[0, 1, 2, 3]], 1, 0, 0)  # once a session
     assert len(lines) == 1 and "(by this machine's calibration of 2026-01-02;" in lines[0]
-    assert "~2 days" in lines[0] and len(warnings) == 1 and "--preset quick" in warnings[0]
+    assert "takes ~44.3 h on cpu" in lines[0] and len(warnings) == 1 and "--preset quick" in warnings[0]
     clock = RunClock(cfg, num_groups=1)
     clock.start_group()
     for chunk in range(1, 4):
@@ -143,7 +146,9 @@ def test_a_cached_calibration_is_told_before_the_chunks_and_its_long_run_warning
         console.estimate_once(clock, 0, chunk)
     assert len(lines) == 2 and "calibration" not in lines[1] and len(warnings) == 1  # warned already
     # Another configuration (2 members per device) has no calibration: nothing is told.
-    other = Console(cfg, lines.append, warnings.append, enabled=False, backend="cpu", start_time=0.0)
+    other = Console(
+        cfg, lines.append, warnings.append, enabled=False, backend="cpu", start_time=time.perf_counter()
+    )
     other.estimate_calibrated([[0, 1], [2, 3]], 1, 0, 0)
     assert len(lines) == 2
 

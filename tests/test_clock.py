@@ -2,6 +2,8 @@
 warm-up chunks and each group's first updating chunk do not set the rate, the first (compiling)
 evaluation counts only until a later one is timed, and the bar shows the clock's estimate."""
 
+import time
+
 import pytest
 
 from xrl_jax.train import resolve_config
@@ -92,7 +94,9 @@ def test_a_partly_warm_up_chunk_is_scaled_to_a_full_one_and_the_estimate_warns_b
 def test_the_estimate_is_told_once_a_steady_chunk_is_timed():
     cfg = quick_start_config()
     lines = []
-    console = Console(cfg, lines.append, lines.append, enabled=False, backend="cpu", start_time=0.0)
+    console = Console(
+        cfg, lines.append, lines.append, enabled=False, backend="cpu", start_time=time.perf_counter()
+    )
     clock = RunClock(cfg, num_groups=1)
     clock.start_group()
     for chunk, seconds in enumerate([0.09, 16.0]):
