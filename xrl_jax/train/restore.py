@@ -9,6 +9,7 @@ the step and the next chunk.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -34,13 +35,31 @@ from xrl_jax.train import hosts
 from xrl_jax.train.chunk import Trainer, get_trainer
 from xrl_jax.train.memory import padded_members
 
+# Settings added after runs with checkpoints existed. Each is hashed only when set away from its
+# default, so that a run which does not use it keeps the fingerprint it was written with and resumes
+# (and is read) after an upgrade. A new setting joins these lists: tests/test_fingerprint.py
+# pins the fingerprint of a fixed configuration, and fails when a setting is added without it.
+LATE_TRAIN_SETTINGS = ("sweep",)
+LATE_AGENT_SETTINGS = (  # the on-policy family's (issue 51)
+    "rollout_steps", "ppo_epochs", "ppo_minibatches", "clip_eps", "value_clip_eps", "ent_coef", "gae_lambda",
+)  # fmt: skip
+
+
+def _unset(config, names: tuple[str, ...]) -> list[str]:
+    """The settings of ``names`` that ``config`` (a config dataclass) leaves at their defaults."""
+    defaults = {f.name: f.default for f in dataclasses.fields(config)}
+    return [name for name in names if getattr(config, name) == defaults[name]]
+
 
 def config_fingerprint(cfg: TrainConfig) -> str:
-    """A hash of every setting that shapes the run's results (not the host-only settings); stored
-    with each checkpoint so that a resume never continues another configuration's state."""
+    """A hash of every setting that shapes the run's results (not the host-only settings; the late
+    settings only when set); stored with each checkpoint so that a resume never continues another
+    configuration's state."""
     fields = cfg.results_fields()
-    if not fields["sweep"]:  # a plain run hashes as before sweeps existed
-        fields.pop("sweep")
+    for name in _unset(cfg, LATE_TRAIN_SETTINGS):
+        fields.pop(name)
+    for name in _unset(cfg.agent, LATE_AGENT_SETTINGS):
+        fields["agent"].pop(name)
     record = user_env_record(cfg.env)
     if record is not None:  # a user's env: its layout, actions, time limit and module (built-ins: none)
         fields["user_env"] = record
