@@ -142,3 +142,18 @@ def test_outside_the_kinds_room_few_lines_branch_on_the_kind():
     tracks (below the trainer too)."""
     branches = kind_branches()
     assert len(branches) <= MAX_KIND_BRANCHES, "\n".join(branches)
+
+
+def test_outside_the_families_room_nothing_branches_on_the_family():
+    """The trainer asks the run's algorithm family (xrl_jax.train.families); only the configuration,
+    below it, and the agents' own constructors tell the families apart."""
+    allowed = {"xrl_jax/train/families.py", "xrl_jax/ppo.py"}
+    found = []
+    for path in sorted((ROOT / "xrl_jax").rglob("*.py")):
+        relative = path.relative_to(ROOT).as_posix()
+        if relative in allowed or relative.startswith("xrl_jax/config/"):
+            continue
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            if "is_on_policy" in line or "ON_POLICY_ALGOS" in line:
+                found.append(f"{relative}:{number}: {line.strip()}")
+    assert not found, "\n".join(found)

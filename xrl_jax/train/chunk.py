@@ -55,14 +55,13 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from envs.registry import user_factory
-from xrl_jax.agents import Agent, HyperParams, make_hparams
+from xrl_jax.agents import Agent, HyperParams
 from xrl_jax.config import TrainConfig
-from xrl_jax.ppo import make_ppo_hparams
 from xrl_jax.sets import MEMBERS_AXIS
-from xrl_jax.train import on_policy
 from xrl_jax.train.episodes import window_means
+from xrl_jax.train.families import algorithm_family
 from xrl_jax.train.kinds import scenario_kind
-from xrl_jax.train.step import MemberParts, RunState, init_member, member_parts, tree_all_finite, vector_step
+from xrl_jax.train.step import MemberParts, RunState, init_member, member_parts, tree_all_finite
 
 
 def _update_metric_order(metrics) -> list[str]:
@@ -220,47 +219,35 @@ def get_trainer(cfg: TrainConfig, devices: list | None = None) -> Trainer:
 
 def member_hparams(cfg: TrainConfig, agent: Agent, members: list[int]) -> HyperParams:
     """Each member's traced hyper-parameters (its sweep point's values), stacked on a leading axis."""
-    if cfg.agent.is_on_policy:
-        per_point = [make_ppo_hparams(cfg.point_agent(p)) for p in range(cfg.num_points)]
-    else:
-        per_point = [make_hparams(cfg.point_agent(p), agent.action_size) for p in range(cfg.num_points)]
+    family = algorithm_family(cfg)
+    per_point = [family.hparams(cfg.point_agent(p), agent) for p in range(cfg.num_points)]
     rows = [per_point[cfg.member_point_seed(m)[0]] for m in members]
     return jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *rows)
 
 
 def scan_chunk(parts: MemberParts, state: RunState, start_vector_step):
-    """``chunk_vector_steps`` vector steps of one member as one ``lax.scan``; with a partial last
-    chunk, the steps past the end of the run are skipped (a real ``lax.cond``)."""
+    """``chunk_vector_steps`` vector steps of one member as one ``lax.scan`` of its family's chunk
+    steps (a vector step, or a rollout and its updates); with a partial last chunk, the steps past
+    the end of the run are skipped (a real ``lax.cond``). Outputs per vector step."""
     cfg = parts.cfg
-    step = with_env_check(vector_step(parts))
+    step, stride = parts.family.chunk_step(parts)
+    count = cfg.chunk_vector_steps // stride
 
     def body(state, i):
-        return step(state, start_vector_step + i)
+        return step(state, start_vector_step + i * stride)
 
     if cfg.total_steps % cfg.log_interval:  # the last chunk is partial: gate its tail
 
         def body(state, i):
-            t = start_vector_step + i
+            t = start_vector_step + i * stride
             return jax.lax.cond(t < cfg.total_vector_steps, step, skip_step, state, t)
 
         def skip_step(state, t):
             shapes = jax.eval_shape(step, state, t)[1]
             return state, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
 
-    return jax.lax.scan(body, state, jnp.arange(cfg.chunk_vector_steps, dtype=jnp.int32))
-
-
-def with_env_check(step):
-    """The vector step with one more output, ``env_nonfinite``: whether the env's outputs that training
-    takes in were non-finite (1: the reward, as summed for the metrics; 2: the next observations; 0:
-    neither). It only reads them: the training numbers are unchanged."""
-
-    def checked(state, t):
-        state, out = step(state, t)
-        reward = (~jnp.isfinite(out["reward_sum"])).astype(jnp.int32)
-        return state, out | {"env_nonfinite": reward + 2 * (~tree_all_finite(state.obs)).astype(jnp.int32)}
-
-    return checked
+    state, outs = jax.lax.scan(body, state, jnp.arange(count, dtype=jnp.int32))
+    return state, jax.tree.map(lambda x: x.reshape((count * stride, *x.shape[2:])), outs)
 
 
 def _first_step(flags, start_vector_step, num_envs: int):
@@ -283,16 +270,12 @@ def chunk_report(parts: MemberParts, state: RunState, outs, start_vector_step) -
     for k, v in outs["metrics"].items():
         average(f"train/{k}", jnp.sum(v), updates)
     metrics["train/updates"] = state.agent.step
-    if not cfg.agent.is_on_policy:
-        metrics["train/ent_coef"] = jnp.exp(state.agent.log_alpha)  # the current α: always there
-        has_data.pop("train/ent_coef", None)
+    parts.family.chunk_metrics(state, metrics, has_data)
     average("rollout/avg_step_reward", jnp.sum(outs["reward_sum"]), jnp.sum(outs["reward_count"]))
     rollout, window_filled = window_means(state.window, parts.kind.rollout_velocity)
     metrics.update(rollout)
     has_data.update({name: window_filled for name in rollout if name != "rollout/episodes"})
     parts.kind.chunk_metrics(outs, metrics, average)
-    if state.buffer is not None:  # the off-policy family's replay buffer
-        metrics["buffer/stored_rows"] = state.buffer.filled_rows
     # e.g. on fresh tracks: distinct tracks driven so far, and resets that found the feed empty
     metrics.update({f"rollout/{k}": v for k, v in parts.venv.counters(state.venv_state).items()})
     # The first vector step whose update produced a non-finite loss (and which one), whether the
@@ -313,8 +296,7 @@ def chunk_report(parts: MemberParts, state: RunState, outs, start_vector_step) -
 
 
 def chunk_member(parts: MemberParts, state: RunState, start_vector_step):
-    scan = on_policy.scan_chunk if parts.cfg.agent.is_on_policy else scan_chunk
-    state, outs = scan(parts, state, start_vector_step)
+    state, outs = scan_chunk(parts, state, start_vector_step)
     return state, chunk_report(parts, state, outs, start_vector_step)
 
 
@@ -359,10 +341,7 @@ def make_trainer(
     first device only)."""
     kind = scenario_kind(cfg)
     env, params, eval_params = env_and_params if env_and_params is not None else kind.make_envs(cfg)
-    parts = member_parts(cfg, kind, env, params)
-    if cfg.agent.is_on_policy:
-        shapes = on_policy.iteration_metric_shapes(parts.agent, parts.venv, params, parts.obs_example)
-        parts = dataclasses.replace(parts, metric_shapes=shapes)
+    parts = member_parts(cfg, kind, algorithm_family(cfg), env, params)
     mesh = Mesh(np.array(devices if devices is not None else jax.devices()[:1]), (MEMBER_AXIS,))
     members, replicated = P(MEMBER_AXIS), P()
     # check_vma=False: the env and agent code is written for one member and mixes unbatched loop

@@ -16,6 +16,7 @@ from xrl_jax.config import ACTOR_TWIN, ConfigError, TrainConfig
 from xrl_jax.resources import disk_free_bytes, format_bytes, host_memory_available
 from xrl_jax.runs.folder import read_checkpoint_plan, run_paths, write_atomic
 from xrl_jax.train import hosts
+from xrl_jax.train.families import algorithm_family
 
 if TYPE_CHECKING:
     from xrl_jax.train.chunk import Trainer
@@ -59,12 +60,11 @@ def estimate_seed_bytes(trainer: Trainer) -> dict[str, int]:
     if ACTOR_TWIN.get(a.algo, a.algo) == "xsac":  # XSAC and XPPO score every component's sample
         per_sample += objects * objects * trainer.agent.action_size  # the B x K x K x A density tensor
     observation = obs.state_dim + obs.object_features * obs.num_objects
-    batch, rollout = cfg.batch_size, 0
-    if a.is_on_policy:  # a rollout's transitions in the chunk's temporaries, minibatches of it
-        transitions = a.rollout_steps * cfg.num_envs
-        batch, rollout = transitions // a.ppo_minibatches, 4 * transitions * (2 * observation + 8)
+    # The rows of one update's batch, and (on-policy) the rollout's transitions in the chunk's
+    # temporaries: two observations and a few floats each.
+    batch, rollout = algorithm_family(cfg).update_rows(cfg, cfg.scenario.agent_slots)
     # float32 activations kept for the backward pass, gradients and XLA temporaries: ~4 copies.
-    workspace = 4 * 4 * batch * (per_sample + observation) + rollout
+    workspace = 4 * 4 * batch * (per_sample + observation) + 4 * rollout * (2 * observation + 8)
     eval_bytes = 4 * 4 * cfg.eval_episodes * objects * a.actor_width * a.actor_depth
     # The vector env's state (on fresh tracks with the seed's feed), plus what its refill holds.
     refill = trainer.venv.refill_bytes(abstract.venv_state)

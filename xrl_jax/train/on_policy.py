@@ -86,11 +86,12 @@ def iteration(agent, venv, env_params, agent_state, venv_state, obs, key, steps:
 # ---- the trainer's chunk of the on-policy family ------------------------------------------------------
 
 
-def iteration_metric_shapes(agent, venv, env_params, obs_example):
+def iteration_metric_shapes(parts):
     """Shapes of the update metrics of one iteration (the chunk report's names and dtypes)."""
+    agent, venv, env_params = parts.agent, parts.venv, parts.params
 
     def metrics(key):
-        state = agent.init(key, obs_example)
+        state = agent.init(key, parts.obs_example)
         obs, venv_state = venv.reset(key, env_params)
         return iteration(agent, venv, env_params, state, venv_state, obs, key, 1)[4]
 
@@ -136,24 +137,3 @@ def member_iteration(parts, state, t):
         + 2 * (~observations_finite).astype(jnp.int32),
     }
     return state, outs
-
-
-def scan_chunk(parts, state, start_vector_step):
-    """The chunk's iterations (``chunk_vector_steps / rollout_steps``) as one ``lax.scan``; in a partial
-    last chunk the iterations past the run's end are skipped (a real ``lax.cond``). Outputs per
-    vector step, as the off-policy chunk's."""
-    cfg = parts.cfg
-    steps = cfg.agent.rollout_steps
-    count = cfg.chunk_vector_steps // steps
-    step = lambda state, t: member_iteration(parts, state, t)
-
-    def body(state, i):
-        t = start_vector_step + i * steps
-        if cfg.total_steps % cfg.log_interval == 0:
-            return step(state, t)
-        skip = lambda state, t: (state, jax.tree.map(
-            lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(step, state, t)[1]))
-        return jax.lax.cond(t < cfg.total_vector_steps, step, skip, state, t)
-
-    state, outs = jax.lax.scan(body, state, jnp.arange(count, dtype=jnp.int32))
-    return state, jax.tree.map(lambda x: x.reshape((count * steps, *x.shape[2:])), outs)

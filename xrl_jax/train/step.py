@@ -13,8 +13,6 @@ multi-agent env itself.
 from __future__ import annotations
 
 import dataclasses
-import functools
-import math
 from typing import Any, ClassVar
 
 import jax
@@ -23,11 +21,10 @@ from flax import struct
 
 from envs.core import VmapWrapper, action_size
 from envs.track_feed import join_states, split_states
-from xrl_jax.agents import Agent, AgentState, make_agent
+from xrl_jax.agents import Agent, AgentState
 from xrl_jax.buffer import ReplayBuffer, buffer_init, buffer_sample
 from xrl_jax.config import TrainConfig
 from xrl_jax.evaluation import EARLY_TERMINATION_REWARD
-from xrl_jax.ppo import make_ppo_agent
 from xrl_jax.train.episodes import EpisodeWindow, window_add, window_init
 
 
@@ -69,12 +66,13 @@ class RunState:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class MemberParts:
-    """What one member's steps are built from: the config, its scenario kind (:mod:`xrl_jax.train.kinds`),
-    its vector env and the params it steps with, the agent, and the shapes that the steps' branches
-    must agree on."""
+    """What one member's steps are built from: the config, its scenario kind (:mod:`xrl_jax.train.kinds`)
+    and algorithm family (:mod:`xrl_jax.train.families`), its vector env and the params it steps
+    with, the agent, and the shapes that the steps' branches must agree on."""
 
     cfg: TrainConfig
     kind: Any  # the scenario kind: how a vector step stores and updates (xrl_jax.train.kinds.ScenarioKind)
+    family: Any  # the algorithm family: its agent, buffer and chunk step (xrl_jax.train.families)
     venv: VmapWrapper
     params: Any
     agent: Agent
@@ -84,8 +82,9 @@ class MemberParts:
     metric_shapes: Any = None  # the update's metrics
 
 
-def member_parts(cfg: TrainConfig, kind, env, params) -> MemberParts:
-    """The agent and the vector env for ``env`` of scenario kind ``kind`` under ``cfg``."""
+def member_parts(cfg: TrainConfig, kind, family, env, params) -> MemberParts:
+    """The agent and the vector env for ``env`` of scenario kind ``kind`` under ``cfg``, the agent
+    built by its algorithm family ``family`` (:mod:`xrl_jax.train.families`)."""
     obs_shapes = jax.eval_shape(env.reset, jax.random.PRNGKey(0), params)[0]
     # Actors: envs, and per env the kind's agent slots, whose observations carry those leading axes;
     # the agent sees one agent's view.
@@ -93,19 +92,11 @@ def member_parts(cfg: TrainConfig, kind, env, params) -> MemberParts:
     actors = (cfg.num_envs, *slots)
     obs_shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[len(slots) :], s.dtype), obs_shapes)
     obs_example = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), obs_shapes)
-    actions = action_size(env.action_space(params))
-    if cfg.agent.is_on_policy:  # its chunk (xrl_jax.train.on_policy) fills in the metric shapes
-        agent = make_ppo_agent(cfg.agent, obs_example, actions)
-        venv = kind.vector_env(cfg, env)
-        return MemberParts(cfg, kind, venv, params, agent, obs_example, actors, jnp.result_type(float))
-    agent = make_agent(cfg.agent, obs_example, actions)
+    agent = family.make_agent(cfg.agent, obs_example, action_size(env.action_space(params)))
     venv = kind.vector_env(cfg, env)
-    parts = MemberParts(cfg, kind, venv, params, agent, obs_example, actors, jnp.result_type(float))
-    abstract_agent = jax.eval_shape(agent.init, jax.random.PRNGKey(0), obs_example)
-    abstract_buffer = jax.eval_shape(lambda: new_buffer(parts, max(cfg.batch_size, math.prod(actors))))
-    update = functools.partial(sample_and_update, parts)
-    metric_shapes = jax.eval_shape(update, abstract_agent, abstract_buffer, jax.random.PRNGKey(0))[1]
-    return dataclasses.replace(parts, metric_shapes=metric_shapes)
+    float_dtype = jnp.result_type(float)
+    parts = MemberParts(cfg, kind, family, venv, params, agent, obs_example, actors, float_dtype)
+    return dataclasses.replace(parts, metric_shapes=family.metric_shapes(parts))
 
 
 def new_buffer(parts: MemberParts, capacity: int) -> ReplayBuffer:
@@ -128,7 +119,7 @@ def init_member(parts: MemberParts, base_seed, index, hparams) -> RunState:
     env_state, feed = split_states(venv_state)
     return RunState(
         agent=parts.agent.init(agent_key, parts.obs_example, hparams),
-        buffer=None if cfg.agent.is_on_policy else new_buffer(parts, cfg.buffer_size),  # on-policy: rollouts
+        buffer=parts.family.initial_buffer(parts),
         env_state=env_state,
         feed=feed,
         obs=obs,
