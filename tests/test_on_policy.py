@@ -1,6 +1,7 @@
 """One on-policy iteration (xrl_jax.train.on_policy) on the fast env of tests/fast_env.py: the rollout's
 time-major layout, the bootstrap value of a truncated step taken at its ending observation, the
-advantages by GAE, and the whole iteration under vmap over members."""
+advantages by GAE, the whole iteration under vmap over members, and agent slots that sit steps out
+(the Intersection's): masked out of the losses, ending their slot's GAE chain."""
 
 import jax
 import jax.numpy as jnp
@@ -86,3 +87,72 @@ def test_iterations_run_under_vmap_over_members_and_scan_over_iterations():
     assert all(np.all(np.isfinite(np.asarray(m))) for m in metrics.values())
     np.testing.assert_array_equal(np.asarray(states.step), [3 * 2 * 4] * 2)  # iterations x epochs x batches
     assert not np.array_equal(np.asarray(rewards[0]), np.asarray(rewards[1]))  # members differ
+
+
+def test_an_idle_agent_slot_is_masked_out_and_ends_its_slots_advantage_chain():
+    """Two agent slots of one env, 4 steps: slot 0 drives throughout; slot 1's vehicle drives steps
+    0-1 and ends (terminated at 1), the slot is empty at step 2 and a new vehicle drives step 3. GAE
+    by hand: nothing crosses the empty step, whose row the batch masks out."""
+    from xrl_jax.train.kinds import KINDS
+
+    gamma, lam = 0.9, 0.8
+    acted = np.array([[[1, 1]], [[1, 1]], [[1, 0]], [[1, 1]]], bool)  # (T, E, slots)
+    terminated = np.zeros((4, 1, 2), bool)
+    terminated[1, 0, 1] = True
+    reward = np.arange(8, dtype=np.float32).reshape(4, 1, 2) / 10
+    value = np.linspace(0.5, 1.2, 8, dtype=np.float32).reshape(4, 1, 2)
+    next_value = np.linspace(1.0, 0.3, 8, dtype=np.float32).reshape(4, 1, 2)
+    info = {"acted": acted, "mean_velocity": np.zeros((4, 1), np.float32)}
+    read = jax.vmap(KINDS["multi_agent"].read_step)
+    record = read(jnp.asarray(reward), jnp.asarray(terminated), jnp.zeros((4, 1, 2), bool), info)
+    obs = {"state": jnp.arange(8.0).reshape(4, 1, 2, 1)}
+    rollout = on_policy.Rollout(obs, jnp.zeros((4, 1, 2), jnp.int32), jnp.zeros((4, 1, 2)),
+                                jnp.asarray(value), jnp.asarray(next_value), record, info)  # fmt: skip
+    batch = on_policy.rollout_batch(rollout, gamma, lam, masked=True)
+    np.testing.assert_array_equal(np.asarray(batch["mask"]), acted.reshape(-1))
+    assert batch["obs"]["state"].shape == (8, 1)
+    advantage = np.asarray(batch["advantage"]).reshape(4, 2)
+    r, v, nv = reward[:, 0], value[:, 0], next_value[:, 0]
+    delta = r + gamma * nv - v
+    expected_slot0 = np.zeros(4)
+    later = 0.0
+    for t in reversed(range(4)):
+        later = delta[t, 0] + gamma * lam * later
+        expected_slot0[t] = later
+    ended = r[1, 1] - v[1, 1]  # terminated: nothing bootstrapped
+    expected_slot1 = [delta[0, 1] + gamma * lam * ended, ended, delta[3, 1]]  # step 2 is masked out
+    # float32 sums of a few terms of size ~1: a few ulps.
+    np.testing.assert_allclose(advantage[:, 0], expected_slot0, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(advantage[[0, 1, 3], 1], expected_slot1, rtol=1e-6, atol=1e-6)
+
+
+def test_masked_rows_do_not_move_the_update():
+    """The same batch with other contents in its masked-out rows: the same agent afterwards, bit for
+    bit (their terms enter every sum as exact zeros)."""
+    agent, _ = setup()
+    state = agent.init(jax.random.PRNGKey(0), EXAMPLE)
+    size = 32
+    keys = jax.random.split(jax.random.PRNGKey(1), 6)
+    batch = {
+        "obs": {"state": jax.random.normal(keys[0], (size, 2)),
+                "dots_set": jax.random.normal(keys[1], (size, 4, 3))},
+        "sample": jax.random.randint(keys[2], (size,), 0, 3),
+        "log_prob": jnp.full((size,), -1.1),
+        "value": jnp.zeros(size),
+        "advantage": jax.random.normal(keys[3], (size,)),
+        "target": jax.random.normal(keys[4], (size,)),
+        "mask": jnp.arange(size) % 3 != 0,
+    }
+    other = dict(batch)
+    idle = ~batch["mask"]
+    other["advantage"] = jnp.where(idle, 50.0, batch["advantage"])
+    other["target"] = jnp.where(idle, -7.0, batch["target"])
+    other["obs"] = {k: jnp.where(idle.reshape((-1,) + (1,) * (x.ndim - 1)), 3.0, x)
+                    for k, x in batch["obs"].items()}
+    update = jax.jit(agent.update)
+    first, _ = update(keys[5], state, batch)
+    second, _ = update(keys[5], state, other)
+    assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), first, second))
+    # Without the mask those rows do count: the test can tell.
+    unmasked, _ = update(keys[5], state, {k: v for k, v in other.items() if k != "mask"})
+    assert not jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), unmasked, first))

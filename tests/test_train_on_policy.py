@@ -52,6 +52,30 @@ def test_a_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, ca
     assert "train/ent_coef" not in rows[-1] and "buffer/stored_rows" not in rows[-1]
 
 
+@pytest.mark.slow  # two Intersection smoke runs (~40 s); the masked rollout's pieces are tested by default
+def test_the_intersection_trains_every_agent_slot_and_resumes_exactly(run, tmp_path, capsys, monkeypatch):
+    """Parameter sharing over the vehicles, as the SAC agents do: every slot's steps in one rollout
+    (16 vector steps x 2 envs x 8 slots), the empty slots masked out; stopped after its first chunk
+    and resumed, it equals the uninterrupted run."""
+    args = ["--env", "intersection", "--algo", "xdppo", "--preset", "smoke", "--seeds", "1", "--quiet"]
+    full, split = tmp_path / "full", tmp_path / "split"
+    assert call(run, capsys, *args, "--out", str(full))[0] == 0
+    original = train_mod.train
+    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=1))
+    assert call(run, capsys, *args, "--out", str(split))[0] == 1
+    monkeypatch.setattr(train_mod, "train", original)
+    assert call(run, capsys, "--resume", str(split), "--quiet")[0] == 0
+    assert files_of(split, "metrics") == files_of(full, "metrics")
+    assert files_of(split, "eval") == files_of(full, "eval")
+    rows = [json.loads(line) for line in (full / "metrics" / "seed_0.jsonl").read_text().splitlines()]
+    # Two rollouts per chunk of 64 transitions (32 vector steps), each 2 epochs x 4 minibatches.
+    assert [row["train/updates"] for row in rows] == [16, 32]
+    assert rows[-1]["rollout/episodes"] > 0 and "rollout/trips_per_episode" in rows[-1]
+    summary = json.loads((full / "summary.json").read_text())  # the Intersection's evaluation
+    assert summary["complete"]
+    assert {"avg_trips_completed", "avg_early_terminations"} <= set(summary["aggregate"])
+
+
 @pytest.mark.slow  # a smoke run and the figure (~20 s); the explain CLI of the SAC family runs by default
 def test_the_explanation_figure_reads_a_trained_xdppo_agent(run, tmp_path, capsys):
     out = tmp_path / "run"
@@ -64,15 +88,17 @@ def test_the_explanation_figure_reads_a_trained_xdppo_agent(run, tmp_path, capsy
 @pytest.mark.parametrize(
     "env, algo, overrides, message",
     [
-        ("intersection", "xdppo", {}, "trains single-agent envs so far"),
+        ("intersection", "xdppo", {"reinit_steps": "1000"}, "reinit_steps .* is not for xdppo"),
         ("tracking", "xdppo", {"warmup_steps": "64"}, "warmup_steps must be 0"),
         ("tracking", "xdppo", {"rollout_steps": "10"}, "must be a multiple of one rollout"),
         ("tracking", "xdppo", {"ppo_minibatches": "5"}, "cannot be split into ppo_minibatches=5"),
         ("tracking", "xppo", {}, None),  # continuous Tracking: accepted
         ("country_road", "dppo", {}, None),
+        ("intersection", "xdppo", {}, None),  # its agent slots: rollouts of every slot
+        ("intersection", "ppo", {}, None),
     ],
 )
-def test_what_the_on_policy_trainer_cannot_train_yet_is_refused_in_one_line(env, algo, overrides, message):
+def test_what_the_on_policy_trainer_cannot_train_is_refused_in_one_line(env, algo, overrides, message):
     if message is None:
         assert resolve_config(env, algo, "smoke", overrides=overrides).agent.is_on_policy
         return

@@ -17,7 +17,8 @@ methods of its own:
   exact (``xrl_jax.losses.mixture_log_ratio``);
 * ``update(key, state, batch) -> (state, metrics)``: ``ppo_epochs`` passes over the rollout's
   flattened ``batch`` (``obs``, ``sample``, ``log_prob``, ``value``, ``advantage``, ``target``; the
-  advantages and value targets from :func:`xrl_jax.losses.gae`), each in ``ppo_minibatches`` shuffled
+  advantages and value targets from :func:`xrl_jax.losses.gae`; optionally ``mask``, the steps that
+  count, where agent slots sit steps out), each in ``ppo_minibatches`` shuffled
   minibatches; per minibatch one Adam step of the actor on XPPO's objective (clipped surrogate,
   entropy bonus, κ·H(w): :func:`xrl_jax.losses.xppo_actor_loss`) and one of the value network.
 
@@ -155,14 +156,17 @@ class PPOAgent(PolicyActing):
         pi = self.policy(actor_params, batch["obs"])
         log_ratio = losses.mixture_log_ratio(pi, batch["sample"], batch["log_prob"])
         entropy = pi.entropy() if isinstance(pi, CategoricalMixture) else pi.entropy_estimate(key)
-        advantages = losses.normalize_advantages(batch["advantage"])
+        mask = batch.get("mask")  # the steps actors took (agent slots); None: all of them
+        advantages = losses.normalize_advantages(batch["advantage"], mask)
         return losses.xppo_actor_loss(
-            log_ratio, advantages, entropy, pi.weights, hp.clip_eps, hp.ent_coef, hp.kappa
+            log_ratio, advantages, entropy, pi.weights, hp.clip_eps, hp.ent_coef, hp.kappa, mask
         )
 
     def value_loss(self, value_params: Any, batch: Mapping[str, Any]):
         values = self.value(value_params, batch["obs"])
-        return losses.ppo_value_loss(values, batch["value"], batch["target"], self.config.value_clip_eps)
+        return losses.ppo_value_loss(
+            values, batch["value"], batch["target"], self.config.value_clip_eps, batch.get("mask")
+        )
 
     def _learning_rate_scale(self, step: Array) -> Array:
         """Linear decay to zero over ``lr_decay_updates`` minibatch updates (1 without decay)."""

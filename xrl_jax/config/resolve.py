@@ -39,7 +39,8 @@ def resolve_config(
         check_choice("", kind, value, choices)
     fields = preset_train_fields(preset_name, env)
     if algo in ON_POLICY_ALGOS:
-        fields["warmup_steps"] = 0  # the on-policy agents act by their policy from the first step
+        # The on-policy agents act by their policy from the first step, and keep their agent throughout.
+        fields.update(warmup_steps=0, reinit_steps=0)
     fields.update(env=env, algo=algo, preset=preset_name, num_seeds=num_seeds, sweep=tuple(sweep))
     if total_steps is not None:
         fields["total_steps"] = total_steps

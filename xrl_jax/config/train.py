@@ -265,13 +265,8 @@ def _validate_train(cfg: TrainConfig) -> None:
         f"buffer_size ({cfg.buffer_size}) must be at least batch_size ({cfg.batch_size})",
     )
     _validate_sweep(cfg)
-    if cfg.scenario.agent_slots > 1:  # packed transitions: one row per agent
+    if cfg.scenario.agent_slots > 1 and not cfg.agent.is_on_policy:  # packed transitions, a row per agent
         slots = cfg.scenario.agent_slots
-        require(
-            not cfg.agent.is_on_policy,
-            f"{cfg.algo} trains single-agent envs so far; {cfg.env}'s {slots} agent slots need the "
-            "on-policy rollout of agent slots (issue 51)",
-        )
         require(
             cfg.buffer_size >= slots * e,
             f"buffer_size ({cfg.buffer_size}) must hold one step of all agents ({slots * e})",
@@ -280,12 +275,17 @@ def _validate_train(cfg: TrainConfig) -> None:
 
 def _validate_on_policy(cfg: TrainConfig) -> None:
     """The on-policy family's run: whole rollouts per chunk, minibatches that split a rollout, no
-    warm-up (it acts by its policy from the first step) and no sweep (to come; nor the multi-agent
-    envs, which the agent-slot check of :func:`_validate_train` refuses)."""
+    warm-up (it acts by its policy from the first step), no primacy-bias resets and no sweep (to
+    come)."""
     agent, e = cfg.agent, cfg.num_envs
     rollout = agent.rollout_steps * e
     first_step = f"{cfg.algo} acts by its policy from its first step"
     require(cfg.warmup_steps == 0, f"{first_step}: warmup_steps must be 0, got {cfg.warmup_steps}")
+    require(
+        cfg.reinit_steps == 0,
+        f"reinit_steps (primacy-bias resets, the Intersection SAC protocol's) is not for {cfg.algo}: "
+        f"set it to 0, got {cfg.reinit_steps}",
+    )
     for name in ("log_interval", "total_steps"):
         require(
             getattr(cfg, name) % rollout == 0,

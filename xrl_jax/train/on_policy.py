@@ -18,27 +18,44 @@ import jax.numpy as jnp
 from flax import struct
 
 from xrl_jax import losses
+from xrl_jax.train.kinds.base import ScenarioKind, StepRecord
 from xrl_jax.train.step import episode_bookkeeping, tree_all_finite
+
+SINGLE_AGENT_STEPS = ScenarioKind().read_step  # one agent per env, every one acting
 
 
 @struct.dataclass
 class Rollout:
-    """A rollout's steps, time-major: (T, E, ...) per leaf."""
+    """A rollout's steps, time-major: (T, actors..., ...) per leaf (actors: envs, or envs x agent
+    slots)."""
 
     obs: Any
     sample: jax.Array  # what the ratio is taken at: action index, or pre-squash point
     log_prob: jax.Array
     value: jax.Array
-    reward: jax.Array
-    terminated: jax.Array
-    truncated: jax.Array
     next_value: jax.Array  # V of the step's own next observation (the ending one where it ended)
+    record: StepRecord  # reward, who acted, terminated, truncated, as the scenario kind reads them
     info: Any  # the env's per-step info (the trainer's bookkeeping reads it)
 
+    @property
+    def reward(self) -> jax.Array:
+        return self.record.reward
 
-def collect_rollout(agent, venv, env_params, agent_state, venv_state, obs, key, steps: int):
+    @property
+    def terminated(self) -> jax.Array:
+        return self.record.terminated
+
+    @property
+    def truncated(self) -> jax.Array:
+        return self.record.truncated
+
+
+def collect_rollout(agent, venv, env_params, agent_state, venv_state, obs, key, steps: int,
+                    read_step=SINGLE_AGENT_STEPS):  # fmt: skip
     """``steps`` vector steps acting with ``agent``'s current policy: returns (venv_state, obs after
-    the last step, :class:`Rollout`)."""
+    the last step, :class:`Rollout`). ``read_step`` is the scenario kind's
+    (:meth:`~xrl_jax.train.kinds.base.ScenarioKind.read_step`): on the Intersection every agent slot
+    is an actor, and the slots that did not act are marked."""
 
     def one_step(carry, step_key):
         venv_state, obs = carry
@@ -48,37 +65,47 @@ def collect_rollout(agent, venv, env_params, agent_state, venv_state, obs, key, 
             env_key, venv_state, action, env_params
         )
         next_value = agent.value(agent_state.value_params, info["final_obs"])
-        step = Rollout(obs, sample, log_prob, value, reward, terminated, truncated, next_value, info)
+        record = read_step(reward, terminated, truncated, info)
+        step = Rollout(obs, sample, log_prob, value, next_value, record, info)
         return (venv_state, next_obs), step
 
     (venv_state, obs), rollout = jax.lax.scan(one_step, (venv_state, obs), jax.random.split(key, steps))
     return venv_state, obs, rollout
 
 
-def rollout_batch(rollout: Rollout, gamma, gae_lambda) -> dict[str, Any]:
-    """The agent's update batch: every step of ``rollout`` flattened over (T, E), with its GAE
-    advantage and value target (``xrl_jax.ppo.ROLLOUT_KEYS``)."""
+def rollout_batch(rollout: Rollout, gamma, gae_lambda, masked: bool = False) -> dict[str, Any]:
+    """The agent's update batch: every step of ``rollout`` flattened over (T, actors...), with its GAE
+    advantage and value target (``xrl_jax.ppo.ROLLOUT_KEYS``). With ``masked``, the batch's ``mask``
+    says which steps an actor took (an empty agent slot's are weighed out of the losses); such a step
+    also ends the slot's GAE chain, so nothing flows across the gap to the next vehicle in the slot."""
+    record = rollout.record
     advantage, target = losses.gae(
-        rollout.reward, rollout.value, rollout.next_value, rollout.terminated, rollout.truncated,
+        record.reward, rollout.value, rollout.next_value, record.terminated, record.truncated | ~record.acted,
         gamma, gae_lambda,
     )  # fmt: skip
+    step_axes = record.reward.ndim  # T and the actor axes
 
     def flat(x):
-        return x.reshape((-1, *x.shape[2:]))
+        return x.reshape((-1, *x.shape[step_axes:]))
 
     batch = {"obs": rollout.obs, "sample": rollout.sample, "log_prob": rollout.log_prob,
              "value": rollout.value, "advantage": advantage, "target": target}  # fmt: skip
+    if masked:
+        batch["mask"] = record.acted
     return jax.tree.map(flat, batch)
 
 
-def iteration(agent, venv, env_params, agent_state, venv_state, obs, key, steps: int):
-    """One rollout and the updates on it: returns (agent_state, venv_state, obs, rollout, metrics)."""
+def iteration(agent, venv, env_params, agent_state, venv_state, obs, key, steps: int, kind=None):
+    """One rollout and the updates on it: returns (agent_state, venv_state, obs, rollout, metrics).
+    ``kind``: the scenario kind whose steps these are (default: one agent per env)."""
     rollout_key, update_key = jax.random.split(key)
+    read_step = SINGLE_AGENT_STEPS if kind is None else kind.read_step
     venv_state, obs, rollout = collect_rollout(
-        agent, venv, env_params, agent_state, venv_state, obs, rollout_key, steps
+        agent, venv, env_params, agent_state, venv_state, obs, rollout_key, steps, read_step
     )
     hp = agent_state.hparams
-    batch = rollout_batch(rollout, hp.gamma, hp.gae_lambda)
+    masked = kind is not None and kind.idle_actors
+    batch = rollout_batch(rollout, hp.gamma, hp.gae_lambda, masked)
     agent_state, metrics = agent.update(update_key, agent_state, batch)
     return agent_state, venv_state, obs, rollout, metrics
 
@@ -93,47 +120,37 @@ def iteration_metric_shapes(parts):
     def metrics(key):
         state = agent.init(key, parts.obs_example)
         obs, venv_state = venv.reset(key, env_params)
-        return iteration(agent, venv, env_params, state, venv_state, obs, key, 1)[4]
+        return iteration(agent, venv, env_params, state, venv_state, obs, key, 1, parts.kind)[4]
 
     return jax.eval_shape(metrics, jax.random.PRNGKey(0))
 
 
-def _bookkeeping(parts, state, rollout: Rollout):
-    """Every step's episode returns, lengths and finished episodes into the run state, in order."""
-
-    def one(state, step):
-        reward, terminated, truncated, velocity = step
-        done = terminated | truncated
-        counted = jnp.ones(done.shape, bool)
-        fields = episode_bookkeeping(parts, state, reward, counted, done, terminated, velocity)
-        return state.replace(**fields), None
-
-    velocity = rollout.info.get("avg_track_velocity", jnp.zeros_like(rollout.reward))
-    steps = (rollout.reward, rollout.terminated, rollout.truncated, velocity)
-    return jax.lax.scan(one, state, steps)[0]
-
-
 def member_iteration(parts, state, t):
     """One iteration of a member starting at vector step ``t``, as the chunk scans it: the run state
-    after the rollout and its updates, and per vector step the outputs the chunk report reads (the
-    update's metrics at the iteration's last step, weighted by its minibatch updates, so that the
-    report's average over updates is the mean over iterations)."""
+    after the rollout and its updates (every step's episodes into the bookkeeping, in order), and
+    per vector step the outputs the chunk report reads (the update's metrics at the iteration's last
+    step, weighted by its minibatch updates, so that the report's average over updates is the mean
+    over iterations)."""
     steps, agent = parts.cfg.agent.rollout_steps, parts.agent
     key, iteration_key = jax.random.split(state.key)
     agent_state, venv_state, obs, rollout, metrics = iteration(
-        agent, parts.venv, parts.params, state.agent, state.venv_state, state.obs, iteration_key, steps
-    )
-    state = _bookkeeping(parts, state, rollout)
+        agent, parts.venv, parts.params, state.agent, state.venv_state, state.obs, iteration_key, steps,
+        parts.kind,
+    )  # fmt: skip
+
+    def bookkeeping(state, record):
+        return state.replace(**episode_bookkeeping(parts, state, record)), None
+
+    state = jax.lax.scan(bookkeeping, state, rollout.record)[0]
     state = state.with_venv_state(venv_state, agent=agent_state, obs=obs, key=key)
     updates = parts.cfg.agent.ppo_epochs * parts.cfg.agent.ppo_minibatches
     last = jnp.arange(steps) == steps - 1
+    rewards_finite = jnp.all(jnp.isfinite(rollout.reward.reshape(steps, -1)), axis=1)
     observations_finite = jax.vmap(tree_all_finite)(rollout.info["final_obs"])  # per vector step
     outs = {
-        "reward_sum": jnp.sum(jnp.where(rollout.truncated, 0.0, rollout.reward), axis=1),
-        "reward_count": jnp.sum(~rollout.truncated, axis=1, dtype=jnp.int32),
+        **jax.vmap(parts.kind.step_outputs)(rollout.record, rollout.info),
         "metrics": jax.tree.map(lambda m: jnp.where(last, m * updates, 0).astype(m.dtype), metrics),
         "updates": jnp.where(last, updates, 0).astype(jnp.int32),
-        "env_nonfinite": (~jnp.all(jnp.isfinite(rollout.reward), axis=1)).astype(jnp.int32)
-        + 2 * (~observations_finite).astype(jnp.int32),
+        "env_nonfinite": (~rewards_finite).astype(jnp.int32) + 2 * (~observations_finite).astype(jnp.int32),
     }
     return state, outs

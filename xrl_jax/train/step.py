@@ -187,13 +187,15 @@ def tree_all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.bool_(True)
 
 
-def episode_bookkeeping(parts: MemberParts, state: RunState, reward, counted, done, terminated, velocity):
-    """Per-actor running episode return and length (actors: envs, or env × vehicle slot);
-    finished episodes enter the rolling window and restart from zero."""
-    episode_return = state.episode_return + reward
-    episode_length = state.episode_length + counted.astype(jnp.int32)
-    early = terminated & (reward < EARLY_TERMINATION_REWARD)
-    velocity = jnp.broadcast_to(velocity, done.shape)
+def episode_bookkeeping(parts: MemberParts, state: RunState, record):
+    """Per-actor running episode return and length (actors: envs, or env × vehicle slot) from a
+    step's :class:`~xrl_jax.train.kinds.base.StepRecord`; finished episodes enter the rolling window
+    and restart from zero."""
+    episode_return = state.episode_return + record.reward
+    episode_length = state.episode_length + record.acted.astype(jnp.int32)
+    done = record.done
+    early = record.terminated & (record.reward < EARLY_TERMINATION_REWARD)
+    velocity = jnp.broadcast_to(record.velocity, done.shape)
     window = window_add(
         state.window, *(x.reshape(-1) for x in (done, episode_return, episode_length, early, velocity))
     )

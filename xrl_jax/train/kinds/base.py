@@ -10,7 +10,7 @@ transition.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +29,22 @@ from xrl_jax.train.step import (
 )
 
 
+class StepRecord(NamedTuple):
+    """What one vector step's env outputs mean to the learner and the episode bookkeeping, per actor
+    (env, or env x agent slot): the kind reads them (:meth:`ScenarioKind.read_step`), so that both
+    algorithm families store, bootstrap and count alike."""
+
+    reward: jax.Array  # 0 where the actor did not act
+    acted: jax.Array  # whether the actor took a step (an empty agent slot did not)
+    terminated: jax.Array  # acted, and its episode ended without a value to bootstrap
+    truncated: jax.Array  # acted, and its episode was cut off (bootstrapped)
+    velocity: Any  # what the rollout window logs beside the return (broadcast over the actors)
+
+    @property
+    def done(self) -> jax.Array:
+        return self.terminated | self.truncated
+
+
 class ScenarioKind:
     """One kind of scenario (its name is :attr:`xrl_jax.config.Scenario.kind`), answering:
 
@@ -36,8 +52,9 @@ class ScenarioKind:
       ended episodes restart);
     * the vector step: :meth:`agent_slots` (the actor batch after the env axis), :meth:`buffer_columns`
       (the replay buffer's layout; :attr:`TrainConfig.buffer_layout` is the config's, from the
-      scenario's facts), :meth:`vector_step` (act, store, update), :meth:`chunk_metrics` (a chunk's
-      extra metrics), :attr:`rollout_velocity` (what the rollout window logs beside returns);
+      scenario's facts), :meth:`vector_step` (act, store, update), :meth:`read_step` (what a step's
+      env outputs mean per actor), :meth:`step_outputs` and :meth:`chunk_metrics` (a chunk's
+      metrics), :attr:`rollout_velocity` (what the rollout window logs beside returns);
     * evaluation: :meth:`make_evaluate` (the protocol of its runs), :meth:`check_reevaluation`
       (whether ``evaluate.py`` can drive its runs again on tracks), :attr:`seeded_evaluation`;
     * the campaign: :meth:`updates_per_env_step` (its cost);
@@ -63,6 +80,9 @@ class ScenarioKind:
     # CPU devices per core when a run splits a CPU host (xrl_jax.train.cpu_devices): members that
     # share a device run in lockstep, which costs where their work per step differs.
     cpu_devices_per_core: int = 1
+    # Whether an actor may sit a step out (an empty agent slot): the on-policy losses then weigh only
+    # the steps that were taken (xrl_jax.train.on_policy.rollout_batch).
+    idle_actors: bool = False
     # Whether vector_step reads the run's length (cfg.total_steps): if not, runs of any length share
     # one compiled chunk (xrl_jax.train.chunk.get_trainer).
     steps_read_run_length: bool = False
@@ -91,6 +111,22 @@ class ScenarioKind:
     def vector_step(self, parts: MemberParts, state: RunState, t):
         """One vector step of the member's envs: ``(state, outputs)``."""
         return single_agent_step(parts, state, t)
+
+    def read_step(self, reward, terminated, truncated, info) -> StepRecord:
+        """The env step's outputs per actor: one agent per env, every one acting."""
+        # A user's env reports no velocity.
+        velocity = info.get("avg_track_velocity", jnp.zeros((), reward.dtype))
+        return StepRecord(reward, jnp.ones(reward.shape, bool), terminated, truncated, velocity)
+
+    def step_outputs(self, record: StepRecord, info) -> dict[str, jax.Array]:
+        """One vector step's outputs that the chunk report sums: the reward and how many steps it
+        counts (the truncated steps left out: the step reward averages the steps that were learned
+        from in full), and whatever the kind's :meth:`chunk_metrics` reads."""
+        del info
+        return {
+            "reward_sum": jnp.sum(jnp.where(record.truncated, 0.0, record.reward)),
+            "reward_count": jnp.sum(~record.truncated, dtype=jnp.int32),
+        }
 
     def initial_owed_updates(self):
         """The run state's count of gradient steps owed at the start (``RunState.owed_updates``):
@@ -149,15 +185,13 @@ def single_agent_step(parts: MemberParts, state: RunState, t):
     agent_state, (metrics, updated) = jax.lax.scan(
         scan_updates, agent_state, (jnp.arange(num_envs), jax.random.split(update_key, num_envs))
     )
-    done = terminated | truncated
+    record = parts.kind.read_step(reward, terminated, truncated, info)
     new_state = state.with_venv_state(
         venv_state, agent=agent_state, buffer=buffer, obs=next_obs, key=key,
-        **episode_bookkeeping(parts, state, reward, jnp.ones(done.shape, bool), done, terminated,
-                              info.get("avg_track_velocity", 0.0)),  # a user's env has none
+        **episode_bookkeeping(parts, state, record),
     )  # fmt: skip
     out = {
-        "reward_sum": jnp.sum(jnp.where(truncated, 0.0, reward)),
-        "reward_count": jnp.sum(~truncated, dtype=jnp.int32),
+        **parts.kind.step_outputs(record, info),
         "metrics": jax.tree.map(lambda m: jnp.sum(jnp.where(updated, m, 0), axis=0), metrics),
         "updates": jnp.sum(updated, dtype=jnp.int32),
     }

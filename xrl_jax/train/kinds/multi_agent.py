@@ -17,7 +17,7 @@ from xrl_jax.buffer import buffer_add_packed
 from xrl_jax.config import TrainConfig
 from xrl_jax.evaluation import make_evaluate_multiagent
 from xrl_jax.sets import MEMBERS_AXIS, axis_bound
-from xrl_jax.train.kinds.base import ScenarioKind
+from xrl_jax.train.kinds.base import ScenarioKind, StepRecord
 from xrl_jax.train.step import (
     MemberParts,
     RunState,
@@ -37,6 +37,7 @@ class MultiAgent(ScenarioKind):
     figure = "slots"
     slots_explained = MAX_AGENTS
     training_episodes_like_evaluation = False  # one car's episodes; the evaluation scores the scene
+    idle_actors = True  # a slot without a vehicle
     steps_read_run_length = True  # the owed updates are all paid at the run's last step
     cpu_devices_per_core = 2  # a member per device: none waits for another's vehicles (cpu_devices)
 
@@ -58,6 +59,27 @@ class MultiAgent(ScenarioKind):
 
     def vector_step(self, parts: MemberParts, state: RunState, t):
         return multi_agent_step(parts, state, t)
+
+    def read_step(self, reward, terminated, truncated, info) -> StepRecord:
+        """The slots that acted; the env's ``terminated`` and ``truncated`` hold for those only, its
+        60 s restart truncates (bootstrapped: docs/carenv-intersection.md §9 Q8)."""
+        acted = info["acted"]
+        velocity = info["mean_velocity"][:, None]  # the env's, for each of its slots
+        reward = jnp.where(acted, reward, 0.0)
+        return StepRecord(reward, acted, terminated & acted, truncated & acted, velocity)
+
+    def step_outputs(self, record: StepRecord, info) -> dict[str, jax.Array]:
+        """The reward of every vehicle that acted, and the whole envs' episodes that ended with their
+        trips and early terminations (for :meth:`chunk_metrics`)."""
+        ended = info["episode_end"]
+        early = info["come_off_vehicles"] + info["collided_vehicles"]
+        return {
+            "reward_sum": jnp.sum(record.reward),
+            "reward_count": jnp.sum(record.acted, dtype=jnp.int32),
+            "episodes_ended": jnp.sum(ended, dtype=jnp.int32),
+            "trips": jnp.sum(jnp.where(ended, info["trips_completed"], 0)),
+            "early_terminations": jnp.sum(jnp.where(ended, early, 0)),
+        }
 
     def chunk_metrics(self, outs, metrics: dict, average) -> None:
         """Episodes of whole envs (every slot restarted) and, per such episode, the completed trips and
@@ -147,25 +169,12 @@ def multi_agent_step(parts: MemberParts, state: RunState, t):
         keep_updating, one_update, (jnp.zeros((), jnp.int32), agent_state, update_key, zero_metrics(parts))
     )
     paid = jnp.minimum(owed, pay)
-    reward = jnp.where(acted, reward, 0.0)
-    agent_done = acted & (terminated | truncated)
-    ended = info["episode_end"]
+    record = parts.kind.read_step(reward, terminated, truncated, info)
     new_state = state.with_venv_state(
         venv_state, agent=agent_state, buffer=buffer, obs=next_obs, key=key, owed_updates=owed - paid,
-        **episode_bookkeeping(parts, state, reward, acted, agent_done, terminated,
-                              info["mean_velocity"][:, None]),
+        **episode_bookkeeping(parts, state, record),
     )  # fmt: skip
-    out = {
-        "reward_sum": jnp.sum(reward),
-        "reward_count": jnp.sum(acted, dtype=jnp.int32),
-        "metrics": metric_sums,
-        "updates": paid,
-        "episodes_ended": jnp.sum(ended, dtype=jnp.int32),
-        "trips": jnp.sum(jnp.where(ended, info["trips_completed"], 0)),
-        "early_terminations": jnp.sum(
-            jnp.where(ended, info["come_off_vehicles"] + info["collided_vehicles"], 0)
-        ),
-    }
+    out = {**parts.kind.step_outputs(record, info), "metrics": metric_sums, "updates": paid}
     return new_state, out
 
 
