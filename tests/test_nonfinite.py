@@ -266,8 +266,16 @@ if __name__ == "__main__":
     _worker(sys.argv[1], sys.argv[2])
 
 
-@pytest.mark.parametrize("output", ["reward", pytest.param("observation", marks=pytest.mark.slow)])
-def test_an_env_returning_nan_is_named_not_the_learning_rates(tmp_path, output):
+@pytest.mark.parametrize(
+    "output, algo",
+    [
+        ("reward", "xdsac"),
+        pytest.param("observation", "xdsac", marks=pytest.mark.slow),
+        pytest.param("reward", "xdppo", marks=pytest.mark.slow),  # the on-policy chunk's own check
+        pytest.param("observation", "xdppo", marks=pytest.mark.slow),
+    ],
+)
+def test_an_env_returning_nan_is_named_not_the_learning_rates(tmp_path, output, algo):
     """Issue 48: an env whose step returns NaN was reported as a loss divergence with advice to lower
     the learning rates (the NaN reward reached the critic once warm-up ended). The chunk's health
     check sees the env's outputs: the run stops at the chunk where the env returned it, naming the
@@ -304,7 +312,7 @@ def test_an_env_returning_nan_is_named_not_the_learning_rates(tmp_path, output):
     name = f"nan_goal_{output}"
     xrl_jax.register_env(name, make, max_episode_steps=40)
     try:
-        cfg = resolve_config(name, "xdsac", "smoke", num_seeds=2)
+        cfg = resolve_config(name, algo, "smoke", num_seeds=2)
         with pytest.raises(DivergenceError) as info:
             train(cfg, tmp_path / "run", progress=False, log=lambda *_: None)
     finally:

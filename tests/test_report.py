@@ -486,3 +486,12 @@ def test_a_run_that_diverged_is_reported_as_diverged_naming_seed_and_step(tmp_pa
         "1 of 2 seeds have their final evaluation"
     )
     assert read_run(folder).status() == row["status"]
+
+
+def test_every_trained_agent_has_a_colour_of_its_own():
+    """The on-policy agents drew grey before they had entries; each agent now keeps one colour."""
+    from xrl_jax.config import TRAINED_ALGOS
+    from xrl_jax.report_figures import AGENT_COLOURS
+
+    assert set(AGENT_COLOURS) == set(TRAINED_ALGOS)
+    assert len(set(AGENT_COLOURS.values())) == len(AGENT_COLOURS)

@@ -1,6 +1,7 @@
 """The on-policy family through the trainer (run.py --algo ppo|dppo|xppo|xdppo): a smoke run leaves a
-complete results folder with the family's metrics, a stopped run resumed equals an uninterrupted one,
-the explanation figure reads a trained XDPPO agent, and what it cannot train yet is refused in one line."""
+complete results folder with the family's metrics, a stopped run resumed equals an uninterrupted one
+(also after kill -9, and on the Intersection), a resume with changed settings is refused, the
+explanation figure reads a trained XDPPO agent, and what it cannot train is refused in one line."""
 
 import functools
 import json
@@ -50,6 +51,18 @@ def test_a_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, ca
     expected = {"train/loss_policy", "train/loss_value", "train/approx_kl", "train/mixture_entropy"}
     assert expected <= set(rows[-1])
     assert "train/ent_coef" not in rows[-1] and "buffer/stored_rows" not in rows[-1]
+    # Resumes with changed settings are refused in one line, nothing touched: on the command line, and
+    # in config.json edited after the run (clip_eps, a setting hashed only where set: the checkpoints'
+    # fingerprint tells it from the default all the same).
+    before = files_of(full, "metrics")
+    status, _, err = call(run, capsys, "--resume", str(full), *SMOKE, "--set", "ppo_epochs=3")
+    assert status == 2 and "another configuration" in err and "ppo_epochs" in err
+    document = json.loads((full / "config.json").read_text())
+    document["config"]["agent"]["clip_eps"] = 0.3
+    (full / "config.json").write_text(json.dumps(document))
+    status, _, err = call(run, capsys, "--resume", str(full), "--quiet")
+    assert status == 2 and "another configuration" in err and len(err.strip().splitlines()) == 1
+    assert files_of(full, "metrics") == before
 
 
 @pytest.mark.slow  # two Intersection smoke runs (~40 s); the masked rollout's pieces are tested by default
@@ -104,3 +117,54 @@ def test_what_the_on_policy_trainer_cannot_train_is_refused_in_one_line(env, alg
         return
     with pytest.raises(ConfigError, match=message):
         resolve_config(env, algo, "smoke", overrides=overrides)
+
+
+@pytest.mark.slow  # two runs in subprocesses (~60 s); the in-process stop and resume runs by default
+def test_a_run_killed_with_sigkill_resumes_to_the_uninterrupted_runs_results(tmp_path):
+    """kill -9 once the first checkpoint is written (no handler runs): the resume restores the newest
+    verified checkpoint and ends with the same metrics and evaluations as a run never killed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    script = str(Path(__file__).resolve().parents[1] / "experiments" / "run.py")
+    args = [*SMOKE, "--steps", "512", "--set", "checkpoint_interval=64"]
+    full, killed = tmp_path / "full", tmp_path / "killed"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    subprocess.run([sys.executable, script, *args, "--out", str(full)], check=True, env=env,
+                   capture_output=True)  # fmt: skip
+    child = subprocess.Popen([sys.executable, script, *args, "--out", str(killed)], env=env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 300
+        group = killed / "checkpoints" / "group_0"
+        while not (group.is_dir() and any(p.name.isdigit() for p in group.iterdir())):
+            assert child.poll() is None and time.monotonic() < deadline, "no checkpoint was written"
+            time.sleep(0.05)
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait()
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert not (killed / "summary.json").exists()  # killed before the end
+    resumed = subprocess.run([sys.executable, script, "--resume", str(killed), "--quiet"], env=env,
+                             capture_output=True, text=True)  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr
+    assert files_of(killed, "metrics") == files_of(full, "metrics")
+    assert files_of(killed, "eval") == files_of(full, "eval")
+
+
+@pytest.mark.slow  # a smoke run (~15 s); the SAC family's divergence test runs by default, same host loop
+def test_a_diverging_on_policy_run_stops_naming_seed_step_and_loss(run, capsys, tmp_path):
+    out = tmp_path / "diverged"
+    status, _, err = call(run, capsys, *SMOKE, "--set", "actor_lr=1e4", "--set", "critic_lr=1e4",
+                          "--out", str(out))  # fmt: skip
+    lines = err.strip().splitlines()
+    assert status == 3 and len(lines) == 1, err
+    assert "diverged at step" in lines[0] and "became non-finite" in lines[0] and "actor_lr" in lines[0]
+    assert not (out / "summary.json").exists()
+    kept = sorted(int(p.name) for p in (out / "checkpoints" / "group_0").iterdir() if p.name.isdigit())
+    assert kept and f"checkpoint at step {kept[-1]} of 192 per seed is kept" in lines[0]

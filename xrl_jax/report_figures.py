@@ -15,7 +15,10 @@ Run = Any  # xrl_jax.report.Run (a run's cfg, summary and label); that module si
 ALGO_ORDER = ("sac", "xsac", "dsac", "xdsac")
 # One colour per agent in every figure: a baseline and its explainable agent in one hue family's
 # neighbours would be hard to tell apart, so the pairs get contrasting colours.
-AGENT_COLOURS = {"sac": "tab:blue", "xsac": "tab:orange", "dsac": "tab:green", "xdsac": "tab:red"}
+AGENT_COLOURS = {
+    "sac": "tab:blue", "xsac": "tab:orange", "dsac": "tab:green", "xdsac": "tab:red",
+    "ppo": "tab:cyan", "xppo": "tab:brown", "dppo": "tab:olive", "xdppo": "tab:purple",  # on-policy
+}  # fmt: skip
 # A second run of one agent (another preset or folder) keeps the agent's colour with its own line style.
 RUN_STYLES = ("-", "--", ":", "-.")
 
