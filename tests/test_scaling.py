@@ -372,3 +372,20 @@ def test_grid_members_and_their_hyper_parameters():
     np.testing.assert_allclose(hp.target_entropy, [1.24] * 3, rtol=1e-6)
     assert math.isclose(float(hp.kappa[0]), cfg.agent.kappa, rel_tol=1e-6)
     assert padded_members([4, 5, 6], 4) == [4, 5, 6, 6] and padded_members([1, 2], 2) == [1, 2]
+
+
+def test_an_on_policy_sweep_point_equals_a_plain_run_of_its_values(run, tmp_path):
+    """The PPO family's traced settings (here the entropy bonus) sweep as the SAC family's do: every
+    point x seed a member of one program, each bit-identical to a plain run of its values."""
+    args = [*FAST_ENV_ARGS, "--algo", "xdppo", "--preset", "smoke", "--seeds", "2", "--quiet",
+            "--set", "max_group_size=2"]  # fmt: skip
+    swept, plain = tmp_path / "swept", tmp_path / "plain"
+    assert run.main([*args, "--sweep", "ent_coef=0,0.1", "--out", str(swept)]) == 0
+    assert run.main([*args, "--set", "ent_coef=0.1", "--out", str(plain)]) == 0
+    swept_metrics, plain_metrics = records(swept, "metrics"), records(plain, "metrics")
+    for seed in range(2):
+        rows = swept_metrics[f"point_1_seed_{seed}"]
+        assert all(r["sweep"] == {"ent_coef": 0.1} for r in rows)
+        assert [numbers(r) for r in rows] == [numbers(r) for r in plain_metrics[f"seed_{seed}"]]
+    other = [numbers(r) for r in swept_metrics["point_0_seed_0"]]
+    assert other != [numbers(r) for r in plain_metrics["seed_0"]]  # the bonus did matter

@@ -109,9 +109,22 @@ def test_the_explanation_figure_reads_a_trained_xdppo_agent(run, tmp_path, capsy
         ("country_road", "dppo", {}, None),
         ("intersection", "xdppo", {}, None),  # its agent slots: rollouts of every slot
         ("intersection", "ppo", {}, None),
+        ("tracking", "xppo", "sweep", ("ent_coef=0,0.01", None)),  # its own traced settings sweep
+        ("tracking", "ppo", "sweep", ("kappa=0,0.01", "ppo has no mixture")),
+        ("tracking", "xppo", "sweep", ("tau=0.01,0.1", "cannot sweep tau for xppo: .*sweepable: actor_lr")),
     ],
 )
 def test_what_the_on_policy_trainer_cannot_train_is_refused_in_one_line(env, algo, overrides, message):
+    from xrl_jax.config import parse_sweep
+
+    if overrides == "sweep":
+        sweep = parse_sweep([message[0]])
+        if message[1] is None:
+            assert resolve_config(env, algo, "smoke", sweep=sweep).num_points == 2
+            return
+        with pytest.raises(ConfigError, match=message[1]):
+            resolve_config(env, algo, "smoke", sweep=sweep)
+        return
     if message is None:
         assert resolve_config(env, algo, "smoke", overrides=overrides).agent.is_on_policy
         return

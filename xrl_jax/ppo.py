@@ -42,7 +42,7 @@ from xrl_jax import losses
 from xrl_jax.action_spaces import ContinuousActions, DiscreteActions
 from xrl_jax.agent_state import adam, adam_step
 from xrl_jax.agents import ACT_MODES, PolicyActing, observation_shape
-from xrl_jax.config import ACTOR_TWIN, AgentConfig
+from xrl_jax.config import ACTOR_TWIN, ON_POLICY_TRACED_FIELDS, AgentConfig
 from xrl_jax.critics import ValueNetwork
 from xrl_jax.distributions import CategoricalMixture
 from xrl_jax.networks import Networks, make_extractor, make_networks, set_packing
@@ -53,7 +53,8 @@ ROLLOUT_KEYS = ("obs", "sample", "log_prob", "value", "advantage", "target")
 
 @struct.dataclass
 class PPOHyperParams:
-    """The on-policy family's traced constants (scalars, vmappable over members)."""
+    """The on-policy family's traced constants (scalars, vmappable over members: a sweep's points);
+    the fields are ``xrl_jax.config.ON_POLICY_TRACED_FIELDS``."""
 
     actor_lr: Array
     critic_lr: Array
@@ -80,8 +81,7 @@ def make_ppo_hparams(config: AgentConfig) -> PPOHyperParams:
     def scalar(x) -> Array:
         return jnp.asarray(x, dtype=jnp.result_type(float))
 
-    return PPOHyperParams(*(scalar(getattr(config, name)) for name in (
-        "actor_lr", "critic_lr", "gamma", "gae_lambda", "clip_eps", "ent_coef", "kappa")))  # fmt: skip
+    return PPOHyperParams(**{name: scalar(getattr(config, name)) for name in ON_POLICY_TRACED_FIELDS})
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -27,5 +27,7 @@ MAX_VEHICLES = 8  # vehicle slots of the intersection env (envs.intersection.MAX
 TRACED_FIELDS = ("actor_lr", "critic_lr", "alpha_lr", "gamma", "tau", "kappa", "target_entropy")
 # What ``--sweep`` may vary within one compiled program: the traced fields and the initial α.
 SWEEPABLE_FIELDS = (*TRACED_FIELDS, "init_alpha")
+# The on-policy family's traced fields (xrl_jax.ppo.PPOHyperParams), all of them sweepable.
+ON_POLICY_TRACED_FIELDS = ("actor_lr", "critic_lr", "gamma", "gae_lambda", "clip_eps", "ent_coef", "kappa")
 # Settings that only the host loop reads: they change neither the compiled code nor the results.
 HOST_ONLY_FIELDS = ("max_group_size", "memory_budget_gb", "checkpoint_minutes", "num_devices")

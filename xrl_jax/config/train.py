@@ -15,6 +15,7 @@ from xrl_jax.config.names import (
     ACTOR_TWIN,
     CONTINUOUS_ALGOS,
     HOST_ONLY_FIELDS,
+    ON_POLICY_TRACED_FIELDS,
     PRESETS,
     SWEEPABLE_FIELDS,
     TRAINED_ALGOS,
@@ -275,8 +276,7 @@ def _validate_train(cfg: TrainConfig) -> None:
 
 def _validate_on_policy(cfg: TrainConfig) -> None:
     """The on-policy family's run: whole rollouts per chunk, minibatches that split a rollout, no
-    warm-up (it acts by its policy from the first step), no primacy-bias resets and no sweep (to
-    come)."""
+    warm-up (it acts by its policy from the first step) and no primacy-bias resets."""
     agent, e = cfg.agent, cfg.num_envs
     rollout = agent.rollout_steps * e
     first_step = f"{cfg.algo} acts by its policy from its first step"
@@ -296,14 +296,18 @@ def _validate_on_policy(cfg: TrainConfig) -> None:
         rollout % agent.ppo_minibatches == 0,
         f"a rollout of {rollout} transitions cannot be split into ppo_minibatches={agent.ppo_minibatches}",
     )
-    require(not cfg.sweep, f"--sweep does not train {cfg.algo} yet: run one configuration per value")
+
+
+def sweepable_fields(agent: AgentConfig) -> tuple[str, ...]:
+    """What ``--sweep`` may vary for ``agent``'s algorithm: its family's traced settings."""
+    return ON_POLICY_TRACED_FIELDS if agent.is_on_policy else SWEEPABLE_FIELDS
 
 
 def unused_sweep_reason(agent: AgentConfig, name: str) -> str | None:
     """Why ``agent`` would ignore swept field ``name`` (None when it uses it): a sweep over a value
     the algorithm never reads would train identical members and report noise as an effect."""
     if name == "kappa" and not agent.is_mixture:
-        return f"{agent.algo} has no mixture (kappa weighs the mixture entropy of xsac and xdsac)"
+        return f"{agent.algo} has no mixture (kappa weighs the mixture entropy of xsac, xdsac, xppo, xdppo)"
     if name in ("alpha_lr", "target_entropy") and not agent.auto_alpha:
         return f"the entropy coefficient is fixed (auto_alpha false), so {name} is never used"
     return None
@@ -321,10 +325,11 @@ def _validate_sweep(cfg: TrainConfig) -> None:
         name, values = entry
         require(name not in names, f"--sweep {name} is given twice; give all its values in one list")
         names.append(name)
+        sweepable = sweepable_fields(cfg.agent)
         require(
-            name in SWEEPABLE_FIELDS,
-            f"cannot sweep {name}: only traced settings can vary within one program "
-            f"(sweepable: {', '.join(SWEEPABLE_FIELDS)}); run one process per value of a static setting",
+            name in sweepable,
+            f"cannot sweep {name} for {cfg.algo}: only traced settings can vary within one program "
+            f"(sweepable: {', '.join(sweepable)}); run one process per value of a static setting",
         )
         require(len(values) > 0, f"--sweep {name} has no values")
         require(
