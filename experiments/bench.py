@@ -103,6 +103,17 @@ def build_parser() -> argparse.ArgumentParser:
     pf_parser.add_argument("--preset", default="quick", choices=PRESETS)
     pf_parser.add_argument("--depth", type=positive_int, default=3, help="module path components per part")
     pf_parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="extra config overrides")
+    rj_parser = sub.add_parser(
+        "rejax", help="our PPO beside rejax's on Tracking at an equal budget: returns, env-steps/s"
+    )
+    rj_parser.add_argument("--seeds", type=positive_int, default=8, help="members of each side")
+    rj_parser.add_argument("--steps", type=positive_int, default=1_048_576, help="env steps per seed")
+    rj_parser.add_argument("--envs", type=positive_int, default=16)
+    rj_parser.add_argument("--rollout-steps", type=positive_int, default=128)
+    rj_parser.add_argument("--epochs", type=positive_int, default=4)
+    rj_parser.add_argument("--minibatches", type=positive_int, default=8)
+    rj_parser.add_argument("--width", type=positive_int, default=64)
+    rj_parser.add_argument("--depth", type=positive_int, default=2)
     tk_parser = sub.add_parser("tracks", help="fresh-track refill cost per track, FLOPs per track")
     tk_parser.add_argument("--seeds", nargs="+", type=positive_int, default=[1, 4, 20])
     tk_parser.add_argument(
@@ -206,6 +217,13 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
         parse_overrides(getattr(args, "set", []))
     except ConfigError as err:
         parser.error(str(err))
+    if args.command == "rejax":
+        rollout = args.envs * args.rollout_steps
+        if args.steps % rollout or rollout % args.minibatches:
+            parser.error(
+                f"--steps must be a multiple of one rollout (--envs x --rollout-steps = {rollout}), "
+                "which --minibatches must split"
+            )
     if args.command != "train":
         return
     if any(seeds % devices_for(seeds, n) for seeds in args.seeds for n in args.devices):
@@ -263,6 +281,11 @@ def results(parser: argparse.ArgumentParser, args: argparse.Namespace):
         return [B.bench_tracks(seeds, args.count, args.repeats) for seeds in args.seeds]
     if args.command == "matmul":
         return B.bench_matmul(args.size)
+    if args.command == "rejax":
+        return B.ppo_against_rejax(
+            args.seeds, args.steps, args.envs, args.rollout_steps, args.epochs, args.minibatches,
+            args.width, args.depth,
+        )  # fmt: skip
     if args.command == "profile":
         return B.bench_profile(
             args.env, args.algo, args.seeds, args.width, args.preset, args.set, depth=args.depth

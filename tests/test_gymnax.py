@@ -177,3 +177,36 @@ def test_a_third_party_trainer_learns_on_tracking():
     untrained, trained = np.asarray(returns[0]), np.asarray(returns[-1])
     margin = 4.0 * np.sqrt(untrained.var(ddof=1) / untrained.size + trained.var(ddof=1) / trained.size)
     assert trained.mean() > untrained.mean() + margin, (untrained.mean(), trained.mean(), margin)
+
+
+def test_the_rejax_comparison_gives_both_ppos_the_same_settings():
+    """bench.py rejax compares two PPOs at an equal budget: every setting both have is the same."""
+    pytest.importorskip("rejax", reason="rejax is not installed (pip install -e '.[gymnax-tests]')")
+    from xrl_jax.benchmarks.third_party import comparison_config, make_rejax_ppo
+
+    cfg = comparison_config(seeds=2, total_steps=8192, num_envs=16, rollout_steps=128, epochs=3,
+                            minibatches=4, width=32, depth=2)  # fmt: skip
+    algo, a = make_rejax_ppo(cfg), cfg.agent
+    assert (algo.total_timesteps, algo.num_envs, algo.num_steps) == (8192, 16, 128)
+    assert (algo.num_epochs, algo.num_minibatches) == (a.ppo_epochs, a.ppo_minibatches) == (3, 4)
+    shared = {"learning_rate": a.actor_lr, "gamma": a.gamma, "gae_lambda": a.gae_lambda,
+              "clip_eps": a.clip_eps, "ent_coef": a.ent_coef, "max_grad_norm": a.clip_norm}  # fmt: skip
+    assert {name: float(getattr(algo, name)) for name in shared} == pytest.approx(shared)
+    assert a.actor_lr == a.critic_lr and a.lr_decay_updates == 0  # rejax: one constant rate
+    assert algo.actor.hidden_layer_sizes == (32, 32) == (a.actor_width,) * a.actor_depth
+    assert (a.critic_width, a.critic_depth, a.feature_extractor, a.pe_freqs) == (32, 2, "flat_pe", 0)
+
+
+@pytest.mark.slow  # two PPOs trained (8,192 steps each) and evaluated on 100 tracks (~90 s)
+def test_the_rejax_comparison_reports_both_sides():
+    pytest.importorskip("rejax", reason="rejax is not installed (pip install -e '.[gymnax-tests]')")
+    from xrl_jax.benchmarks.third_party import ppo_against_rejax
+
+    report = ppo_against_rejax(seeds=2, total_steps=8192, num_envs=16, rollout_steps=128, epochs=2,
+                               minibatches=4, width=32, depth=2)  # fmt: skip
+    for side in ("xrl_jax", "rejax"):
+        assert len(report[side]["returns"]) == 2 and np.all(np.isfinite(report[side]["returns"]))
+        assert report[side]["env_steps_per_s"] > 0
+        low, high = report[side]["ci95"]
+        assert low <= report[side]["iqm"] <= high
+    assert 0.0 <= report["p_xrl_jax_above_rejax"]["estimate"] <= 1.0 and 0 < report["mann_whitney_p"] <= 1

@@ -9,7 +9,8 @@ timings, these do. docs/benchmarks.md holds the measured numbers.
 * :mod:`.updates`: gradient updates per second, end-to-end training steps per second;
 * :mod:`.table_one`: parameter counts and inference FLOPs on Country Road shapes;
 * :mod:`.profile`: one chunk's op time by model part (``jax.profiler`` and the optimised HLO);
-* :mod:`.compare`: two versions' ``bench.py train`` side by side, in turn, in processes of their own.
+* :mod:`.compare`: two versions' ``bench.py train`` side by side, in turn, in processes of their own;
+* :mod:`.third_party`: our PPO beside rejax's at an equal budget (``bench.py rejax``).
 """
 
 import importlib
@@ -27,6 +28,7 @@ _EXPORTS = {
     "bench_train": "updates",
     "bench_update": "updates",
     "bench_profile": "profile",
+    "ppo_against_rejax": "third_party",
 }
 
 
