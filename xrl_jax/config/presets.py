@@ -171,6 +171,17 @@ QUICK_OPTIMISATION = {"intersection": {"packed_rows": None, **QUICK_INTERSECTION
 ON_POLICY_OPTIMISATION = dict(actor_lr=3e-4, critic_lr=3e-4, clip_norm=0.5, rollout_steps=125, ppo_epochs=4,
                               ppo_minibatches=4)  # fmt: skip
 ON_POLICY_SMOKE = dict(rollout_steps=16, ppo_epochs=2)
+# Quick on-policy runs on the racing scenarios, tuned on Tracking (docs/quick_preset_tuning.md, "PPO on
+# Tracking"): the SAC rows' 4 envs gave rollouts of 500 transitions, and XDPPO returned 5.2 after 240k
+# steps; 16 envs (rollouts of 2,000 transitions in 8 minibatches of 250) passed the hand controller on
+# both seeds by 1M steps. The run is 1,024,000 steps, evaluated every 128,000.
+ON_POLICY_AGENT_PRESETS: dict[tuple[str, str], dict[str, Any]] = {("quick", "racing"): {"ppo_minibatches": 8}}
+ON_POLICY_TRAIN_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
+    ("quick", "racing"): dict(
+        num_envs=16, total_steps=1_024_000, log_interval=16_000, eval_interval=128_000,
+        checkpoint_interval=128_000,
+    ),
+}
 
 
 def preset(name: str, env: str, algo: str) -> AgentConfig:
@@ -182,6 +193,7 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
         check_choice("", kind, value, choices)
     if algo in ACTOR_TWIN:  # the on-policy family: the twin's agent, PPO's optimisation
         agent = preset(name, env, ACTOR_TWIN[algo]).replace(algo=algo, **ON_POLICY_OPTIMISATION)
+        agent = agent.replace(**ON_POLICY_AGENT_PRESETS.get((name, scenario(env).kind), {}))
         return agent.replace(**ON_POLICY_SMOKE) if name == "smoke" else agent
     agent = PAPER_AGENTS.get(env, _user_env_agent)(algo)
     if name == "quick":
@@ -193,11 +205,14 @@ def preset(name: str, env: str, algo: str) -> AgentConfig:
     return agent
 
 
-def preset_train_fields(name: str, env: str) -> dict[str, Any]:
+def preset_train_fields(name: str, env: str, on_policy: bool = False) -> dict[str, Any]:
     """The train-loop settings of preset ``name`` on ``env``: its scenario kind's row, refined by the
     env's own where it has one (a user's env: the racing ones, single-agent steps, without their track
-    settings; a kind without rows of its own takes those too)."""
+    settings; a kind without rows of its own takes those too), and for the on-policy family by its
+    own row where it has one."""
     kind = scenario(env).kind
     fields = dict(TRAIN_PRESETS.get((name, kind), TRAIN_PRESETS[(name, "user_env")]))
     fields.update(ENV_TRAIN_PRESETS.get((name, env), {}))  # an env's own row refines its kind's
+    if on_policy:
+        fields.update(ON_POLICY_TRAIN_PRESETS.get((name, kind), {}))
     return fields

@@ -37,7 +37,7 @@ def resolve_config(
     scenario(env)  # an unknown env fails here, saying how a user's env is registered
     for kind, value, choices in (("algo", algo, TRAINED_ALGOS), ("preset", preset_name, PRESETS)):
         check_choice("", kind, value, choices)
-    fields = preset_train_fields(preset_name, env)
+    fields = preset_train_fields(preset_name, env, on_policy=algo in ON_POLICY_ALGOS)
     if algo in ON_POLICY_ALGOS:
         # The on-policy agents act by their policy from the first step, and keep their agent throughout.
         fields.update(warmup_steps=0, reinit_steps=0)

@@ -292,9 +292,10 @@ def _validate_on_policy(cfg: TrainConfig) -> None:
             f"{name} ({getattr(cfg, name)}) must be a multiple of one rollout, rollout_steps x num_envs "
             f"= {agent.rollout_steps} x {e} = {rollout}",
         )
+    rows = rollout * cfg.scenario.agent_slots  # every agent slot's steps (the empty ones masked out)
     require(
-        rollout % agent.ppo_minibatches == 0,
-        f"a rollout of {rollout} transitions cannot be split into ppo_minibatches={agent.ppo_minibatches}",
+        rows % agent.ppo_minibatches == 0,
+        f"a rollout of {rows} transitions cannot be split into ppo_minibatches={agent.ppo_minibatches}",
     )
 
 
