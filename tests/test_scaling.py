@@ -374,6 +374,7 @@ def test_grid_members_and_their_hyper_parameters():
     assert padded_members([4, 5, 6], 4) == [4, 5, 6, 6] and padded_members([1, 2], 2) == [1, 2]
 
 
+@pytest.mark.slow  # two runs (~35 s); the SAC family's sweep point test above runs by default
 def test_an_on_policy_sweep_point_equals_a_plain_run_of_its_values(run, tmp_path):
     """The PPO family's traced settings (here the entropy bonus) sweep as the SAC family's do: every
     point x seed a member of one program, each bit-identical to a plain run of its values."""
