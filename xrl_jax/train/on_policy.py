@@ -7,6 +7,10 @@ The value a step bootstraps from is that of its own next observation, the ending
 episode ended (``info["final_obs"]`` of an auto-resetting vector env), not the next episode's first:
 so a truncated step is valued from where the car was, and GAE (``xrl_jax.losses.gae``) neither
 bootstraps a terminated step nor carries advantages across an episode's end.
+
+On the Intersection every agent slot of every env is an actor of the one agent (parameter sharing);
+the scenario kind reads which slots acted (:meth:`~xrl_jax.train.kinds.base.ScenarioKind.read_step`),
+and an empty slot's steps are masked out of the losses and end the slot's GAE chain.
 """
 
 from __future__ import annotations
