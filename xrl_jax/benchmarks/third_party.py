@@ -11,8 +11,8 @@ actor through :func:`xrl_jax.evaluation.make_evaluate_policy`).
 What differs is each library's own PPO, which is what the comparison is for: rejax's Gaussian has a
 state-independent standard deviation and clips its samples to the action box, ours is SAC's squashed
 Gaussian with a state-dependent one; rejax treats a truncated step as terminal, ours bootstraps it
-from its ending observation; rejax trains on a fixed bank of 128 tracks (envs.make's default), ours
-on fresh tracks every episode.
+from its ending observation. Both train on a fixed bank of 128 tracks (rejax on envs.make's default,
+ours on its trainer's bank of that size).
 """
 
 from __future__ import annotations
@@ -33,14 +33,21 @@ from xrl_jax.config import TrainConfig, resolve_config
 
 def comparison_config(seeds: int, total_steps: int, num_envs: int, rollout_steps: int, epochs: int,
                       minibatches: int, width: int, depth: int) -> TrainConfig:  # fmt: skip
-    """Our side: plain PPO on continuous Tracking with the shared settings (one evaluation, at the end)."""
+    """Our side: plain PPO on continuous Tracking with the shared settings, trained on a fixed bank of
+    as many tracks as rejax's env holds (fresh tracks would cost ours the generator), in chunks of up
+    to 16 rollouts (at least two chunks), one evaluation at the end."""
+    from envs.racing_params import DEFAULT_BANK_SIZE
+
     rollout = num_envs * rollout_steps
+    rollouts = total_steps // rollout
+    # At least two chunks: the first, which compiles, is not timed.
+    chunk = max(n for n in range(1, min(16, max(rollouts // 2, 1)) + 1) if rollouts % n == 0) * rollout
     overrides = {
         "num_envs": num_envs, "rollout_steps": rollout_steps, "ppo_epochs": epochs,
         "ppo_minibatches": minibatches, "actor_width": width, "critic_width": width, "actor_depth": depth,
         "critic_depth": depth, "feature_extractor": "flat_pe", "pe_freqs": 0, "lr_decay_updates": 0,
-        "log_interval": rollout, "eval_interval": total_steps, "checkpoint_interval": total_steps,
-        "num_devices": 1,
+        "train_tracks": DEFAULT_BANK_SIZE, "log_interval": chunk, "eval_interval": total_steps,
+        "checkpoint_interval": total_steps, "num_devices": 1,
     }  # fmt: skip
     cfg = resolve_config("tracking", "ppo", "quick", num_seeds=seeds, total_steps=total_steps,
                          overrides={k: str(v) for k, v in overrides.items()})  # fmt: skip
@@ -55,6 +62,8 @@ def _train_ours(cfg: TrainConfig, folder: Path) -> tuple[np.ndarray, float]:
     returns = np.array([summary["per_seed"][str(seed)]["avg_return"] for seed in range(cfg.num_seeds)])
     timings = (folder / "timing.jsonl").read_text().splitlines()
     seconds = [json.loads(line)["seconds"] for line in timings][1:]  # the first chunk compiles
+    if not seconds:
+        raise ValueError("the run had one chunk, which compiled: give --steps several rollouts more")
     steps = cfg.log_interval * cfg.num_seeds * len(seconds)
     return returns, steps / sum(seconds)
 
