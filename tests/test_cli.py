@@ -135,6 +135,7 @@ def evaluate_cli(run):
     return load_script("evaluate", "evaluate_cli")
 
 
+@pytest.mark.slow  # ~16 s; the next test drives the same CLI on the held-out tracks by default
 def test_evaluate_cli_drives_a_bank_runs_agents_on_its_training_and_held_out_tracks(
     evaluate_cli, smoke_run, capsys
 ):

@@ -214,6 +214,7 @@ def test_tracker_scalars_keep_non_finite_values_and_skip_the_rest():
     assert values["eval/a/inf"] == float("-inf") and values["eval/a/nan"] != values["eval/a/nan"]
 
 
+@pytest.mark.slow  # a killed subprocess (~21 s); test_what_a_tracker_holds_is_not_sent_again runs by default
 def test_a_killed_session_loses_no_wandb_row(run, capsys, tmp_path):
     """Issue 48 (b): W&B's service writes its transaction log in 32 KiB blocks and completes it when a
     run finishes, so a ``kill -9`` lost the rows of the last seconds; trackers.json had marked them

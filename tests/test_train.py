@@ -310,6 +310,7 @@ def test_the_env_step_is_traced_once_for_the_chunk_and_once_for_evaluation(tmp_p
     assert counting.step_traces == 2
 
 
+@pytest.mark.slow  # ~28 s; tests/test_checkpoint.py's manifest tests check the same verdicts by default
 def test_a_resume_says_what_it_could_not_verify_or_find(tmp_path):
     """Papercuts of issue 28: a resume whose checkpoint has no digest manifest lists it in the summary
     (it was only checked for finiteness), and a resume that finds no checkpoint at all (deleted, or
