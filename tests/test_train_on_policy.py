@@ -185,14 +185,14 @@ def test_a_diverging_on_policy_run_stops_naming_seed_step_and_loss(run, capsys, 
 
 def test_the_quick_on_policy_protocol_is_the_tuned_one():
     """docs/quick_preset_tuning.md, "PPO on Tracking": 16 envs, rollouts of 125 vector steps in 8
-    minibatches, 1,024,000 steps with the learning rates decaying to zero at the last minibatch; the
+    minibatches, 2,048,000 steps with the learning rates decaying to zero at the last minibatch; the
     Intersection keeps its kind's rows, its rollout counted over every agent slot (250 x 8 rows)."""
     for env in ("tracking", "country_road"):
         for algo in ("ppo", "dppo", "xppo", "xdppo"):
             cfg = resolve_config(env, algo, "quick", num_seeds=8)
-            assert (cfg.num_envs, cfg.total_steps, cfg.eval_interval) == (16, 1_024_000, 128_000)
+            assert (cfg.num_envs, cfg.total_steps, cfg.eval_interval) == (16, 2_048_000, 256_000)
             assert (cfg.agent.rollout_steps, cfg.agent.ppo_minibatches, cfg.agent.ppo_epochs) == (125, 8, 4)
-            assert cfg.agent.lr_decay_updates == 1_024_000 // (125 * 16) * 4 * 8
+            assert cfg.agent.lr_decay_updates == 2_048_000 // (125 * 16) * 4 * 8
             assert cfg.warmup_steps == 0
     sac = resolve_config("tracking", "xdsac", "quick")
     assert (sac.num_envs, sac.total_steps) == (4, 240_000)  # the SAC family's rows are untouched
