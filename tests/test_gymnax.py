@@ -197,13 +197,14 @@ def test_the_rejax_comparison_gives_both_ppos_the_same_settings():
     assert (a.critic_width, a.critic_depth, a.feature_extractor, a.pe_freqs) == (32, 2, "flat_pe", 0)
 
 
-@pytest.mark.slow  # two PPOs trained (8,192 steps each) and evaluated on 100 tracks (~90 s)
+@pytest.mark.slow  # two PPOs trained (8,192 steps each) and evaluated on 5 held-out tracks
 def test_the_rejax_comparison_reports_both_sides():
     pytest.importorskip("rejax", reason="rejax is not installed (pip install -e '.[gymnax-tests]')")
     from xrl_jax.benchmarks.third_party import ppo_against_rejax
 
     report = ppo_against_rejax(seeds=2, total_steps=8192, num_envs=16, rollout_steps=128, epochs=2,
-                               minibatches=4, width=32, depth=2)  # fmt: skip
+                               minibatches=4, width=32, depth=2, eval_episodes=5)  # fmt: skip
+    assert report["settings"]["eval_episodes"] == 5
     for side in ("xrl_jax", "rejax"):
         assert len(report[side]["returns"]) == 2 and np.all(np.isfinite(report[side]["returns"]))
         assert report[side]["env_steps_per_s"] > 0

@@ -32,7 +32,8 @@ from xrl_jax.config import TrainConfig, resolve_config
 
 
 def comparison_config(seeds: int, total_steps: int, num_envs: int, rollout_steps: int, epochs: int,
-                      minibatches: int, width: int, depth: int) -> TrainConfig:  # fmt: skip
+                      minibatches: int, width: int, depth: int,
+                      eval_episodes: int = 100) -> TrainConfig:  # fmt: skip
     """Our side: plain PPO on continuous Tracking with the shared settings, trained on a fixed bank of
     as many tracks as rejax's env holds (fresh tracks would cost ours the generator), in chunks of up
     to 16 rollouts (at least two chunks), one evaluation at the end."""
@@ -47,7 +48,7 @@ def comparison_config(seeds: int, total_steps: int, num_envs: int, rollout_steps
         "ppo_minibatches": minibatches, "actor_width": width, "critic_width": width, "actor_depth": depth,
         "critic_depth": depth, "feature_extractor": "flat_pe", "pe_freqs": 0, "lr_decay_updates": 0,
         "train_tracks": DEFAULT_BANK_SIZE, "log_interval": chunk, "eval_interval": total_steps,
-        "checkpoint_interval": total_steps, "num_devices": 1,
+        "checkpoint_interval": total_steps, "num_devices": 1, "eval_episodes": eval_episodes,
     }  # fmt: skip
     cfg = resolve_config("tracking", "ppo", "quick", num_seeds=seeds, total_steps=total_steps,
                          overrides={k: str(v) for k, v in overrides.items()})  # fmt: skip
@@ -124,10 +125,13 @@ def _evaluate_rejax(cfg: TrainConfig, algo, actor_params) -> np.ndarray:
 
 def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: int = 16,
                       rollout_steps: int = 128, epochs: int = 4, minibatches: int = 8, width: int = 64,
-                      depth: int = 2, folder: str | None = None) -> dict[str, Any]:  # fmt: skip
-    """Both PPOs at the settings given, ``seeds`` members each: final greedy returns per seed with their
-    IQM and 95 % interval, P(ours > rejax) with the Mann-Whitney test, and env steps per second."""
-    cfg = comparison_config(seeds, total_steps, num_envs, rollout_steps, epochs, minibatches, width, depth)
+                      depth: int = 2, folder: str | None = None,
+                      eval_episodes: int = 100) -> dict[str, Any]:  # fmt: skip
+    """Both PPOs at the settings given, ``seeds`` members each: final greedy returns per seed (over
+    ``eval_episodes`` held-out tracks) with their IQM and 95 % interval, P(ours > rejax) with the
+    Mann-Whitney test, and env steps per second."""
+    cfg = comparison_config(seeds, total_steps, num_envs, rollout_steps, epochs, minibatches, width, depth,
+                            eval_episodes)  # fmt: skip
     with tempfile.TemporaryDirectory() as scratch:
         ours, ours_rate = _train_ours(cfg, Path(folder or scratch) / "ours")
     algo, actor_params, rejax_rate = _train_rejax(cfg, cfg.seed)
