@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from train_support import call, load_script, one_line_error, prepare_cache
+from train_support import call, files_of, load_script, one_line_error, prepare_cache, run_stopped_after
 
 from xrl_jax import train as train_mod
 
@@ -22,10 +22,6 @@ def run(tmp_path_factory):
     """``run.main`` loaded in-process, so runs of one configuration share their compilation."""
     prepare_cache(tmp_path_factory.mktemp("cache"))
     return load_script("run", "run_cli")
-
-
-def files_of(folder: Path, sub: str) -> dict[str, str]:
-    return {p.name: p.read_text() for p in sorted((folder / sub).glob("*.jsonl"))}
 
 
 @pytest.fixture(scope="module")
@@ -108,11 +104,8 @@ def test_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, caps
     full, split = tmp_path / "full", tmp_path / "split"
     assert call(run, capsys, *args, "--out", str(full))[0] == 0
     # Stop after 3 of 4 chunks: the checkpoint is at step 128, metrics exist up to 192.
-    original = train_mod.train
-    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=3))
-    status, _, err = call(run, capsys, *args, "--out", str(split))
+    status, _, err = run_stopped_after(run, capsys, monkeypatch, 3, *args, "--out", str(split))
     assert status == 1 and "--resume" in err
-    monkeypatch.setattr(train_mod, "train", original)
     metrics0 = split / "metrics" / "seed_0.jsonl"
     assert [json.loads(x)["step"] for x in metrics0.read_text().splitlines()] == [64, 128, 192]
     with open(metrics0, "a") as f:
@@ -359,10 +352,7 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_not_in_the_way(run, 
 def test_resume_refuses_a_run_whose_history_is_gone(run, capsys, tmp_path, monkeypatch, damage):
     args = [*SMOKE, "--steps", "256", "--set", "checkpoint_interval=128", "--set", "eval_interval=128"]
     out = tmp_path / "run"
-    original = train_mod.train
-    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=3))
-    assert call(run, capsys, *args, "--out", str(out))[0] == 1
-    monkeypatch.setattr(train_mod, "train", original)
+    assert run_stopped_after(run, capsys, monkeypatch, 3, *args, "--out", str(out))[0] == 1
     if damage == "delete metrics":
         (out / "metrics" / "seed_1.jsonl").unlink()
         fragments = ["metrics/seed_1.jsonl is missing"]
@@ -509,10 +499,7 @@ def test_resume_falls_back_past_a_damaged_checkpoint_and_says_so(run, capsys, tm
     args = [*SMOKE, "--steps", "256", "--set", "checkpoint_interval=64"]
     out, full = tmp_path / "run", tmp_path / "full"
     assert call(run, capsys, *args, "--out", str(full))[0] == 0
-    original = train_mod.train
-    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=3))
-    assert call(run, capsys, *args, "--out", str(out))[0] == 1
-    monkeypatch.setattr(train_mod, "train", original)
+    assert run_stopped_after(run, capsys, monkeypatch, 3, *args, "--out", str(out))[0] == 1
     assert checkpoint_steps(out) == [128, 192]
     data = max((p for p in (out / "checkpoints" / "group_0" / "192").rglob("*") if p.is_file()),
                key=lambda p: p.stat().st_size)  # fmt: skip

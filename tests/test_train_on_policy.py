@@ -3,13 +3,11 @@ complete results folder with the family's metrics, a stopped run resumed equals 
 (also after kill -9, and on the Intersection), a resume with changed settings is refused, the
 explanation figure reads a trained XDPPO agent, and what it cannot train is refused in one line."""
 
-import functools
 import json
 
 import pytest
-from train_support import load_script
+from train_support import call, files_of, load_script, run_stopped_after
 
-from xrl_jax import train as train_mod
 from xrl_jax.config import ConfigError, resolve_config
 
 SMOKE = ["--env", "tracking", "--algo", "xdppo", "--preset", "smoke", "--seeds", "2", "--quiet"]
@@ -20,27 +18,14 @@ def run():
     return load_script("run", "run_cli_on_policy")
 
 
-def call(module, capsys, *args):
-    status = module.main(list(args))
-    out, err = capsys.readouterr()
-    return status, out, err
-
-
-def files_of(folder, sub):
-    return {p.name: p.read_text() for p in sorted((folder / sub).iterdir())}
-
-
 def test_a_stopped_and_resumed_run_equals_an_uninterrupted_one(run, tmp_path, capsys, monkeypatch):
     """Rollouts of 16 vector steps x 4 envs are the smoke chunk of 64 transitions; the checkpoint at
     128 holds the agent, its optimiser states and the envs mid-episode."""
     args = [*SMOKE, "--steps", "256", "--set", "checkpoint_interval=128"]
     full, split = tmp_path / "full", tmp_path / "split"
     assert call(run, capsys, *args, "--out", str(full))[0] == 0
-    original = train_mod.train
-    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=3))
-    status, _, err = call(run, capsys, *args, "--out", str(split))
+    status, _, err = run_stopped_after(run, capsys, monkeypatch, 3, *args, "--out", str(split))
     assert status == 1 and "--resume" in err
-    monkeypatch.setattr(train_mod, "train", original)
     status, out, _ = call(run, capsys, "--resume", str(split), "--quiet")
     assert status == 0 and "final return" in out
     assert files_of(split, "metrics") == files_of(full, "metrics")
@@ -73,10 +58,7 @@ def test_the_intersection_trains_every_agent_slot_and_resumes_exactly(run, tmp_p
     args = ["--env", "intersection", "--algo", "xdppo", "--preset", "smoke", "--seeds", "1", "--quiet"]
     full, split = tmp_path / "full", tmp_path / "split"
     assert call(run, capsys, *args, "--out", str(full))[0] == 0
-    original = train_mod.train
-    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=1))
-    assert call(run, capsys, *args, "--out", str(split))[0] == 1
-    monkeypatch.setattr(train_mod, "train", original)
+    assert run_stopped_after(run, capsys, monkeypatch, 1, *args, "--out", str(split))[0] == 1
     assert call(run, capsys, "--resume", str(split), "--quiet")[0] == 0
     assert files_of(split, "metrics") == files_of(full, "metrics")
     assert files_of(split, "eval") == files_of(full, "eval")

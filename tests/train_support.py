@@ -92,6 +92,26 @@ def call(script, capsys, *args):
     return status, captured.out, captured.err
 
 
+def files_of(folder: Path, sub: str) -> dict[str, str]:
+    """The record files of a run folder's ``sub`` (metrics, eval) by name, with their text."""
+    return {p.name: p.read_text() for p in sorted((folder / sub).glob("*.jsonl"))}
+
+
+def run_stopped_after(run, capsys, monkeypatch, chunks: int, *args):
+    """(status, stdout, stderr) of ``run.main(args)`` with the trainer stopping after ``chunks`` chunks,
+    as an interrupted run does; the trainer is whole again afterwards, for the resume."""
+    import functools
+
+    from xrl_jax import train as train_mod
+
+    original = train_mod.train
+    monkeypatch.setattr(train_mod, "train", functools.partial(original, stop_after_chunks=chunks))
+    try:
+        return call(run, capsys, *args)
+    finally:
+        monkeypatch.setattr(train_mod, "train", original)
+
+
 def one_line_error(status, err, *fragments):
     """A CLI's bad-input exit: status 2 and one line on standard error holding every fragment."""
     assert status == 2, err

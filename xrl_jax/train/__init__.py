@@ -8,8 +8,9 @@ Modules, by what they hold:
 * :mod:`~xrl_jax.train.step`: one member's run state, its start and one vector step of its envs;
 * :mod:`~xrl_jax.train.kinds`: the scenario kinds (racing, multi-agent, a user's env), one object each;
 * :mod:`~xrl_jax.train.chunk`: the compiled chunk over members and devices, its report (:func:`make_trainer`);
-* :mod:`~xrl_jax.train.on_policy`: the on-policy family's chunk: iterations of a rollout, its GAE and
-  the epochs of updates (``--algo ppo|dppo|xppo|xdppo``);
+* :mod:`~xrl_jax.train.families`: the algorithm families (SAC's replay, PPO's rollouts), one object each;
+* :mod:`~xrl_jax.train.on_policy`: the on-policy family's iteration: a rollout, its GAE and the epochs
+  of updates (``--algo ppo|dppo|xppo|xdppo``);
 * :mod:`~xrl_jax.train.memory`: bytes per seed and the seed groups that fit;
 * :mod:`~xrl_jax.train.loop`: the host loop (:func:`train`), its records (:mod:`~xrl_jax.train.records`,
   :class:`Progress` for its progress callbacks) and what it shows (:mod:`~xrl_jax.train.console`);

@@ -25,7 +25,7 @@ from xrl_jax import losses
 from xrl_jax.train.kinds.base import ScenarioKind, StepRecord
 from xrl_jax.train.step import episode_bookkeeping, tree_all_finite
 
-SINGLE_AGENT_STEPS = ScenarioKind().read_step  # one agent per env, every one acting
+ONE_AGENT_PER_ENV = ScenarioKind()  # the base kind's reading of a step: every env's one agent acting
 
 
 @struct.dataclass
@@ -55,7 +55,7 @@ class Rollout:
 
 
 def collect_rollout(agent, venv, env_params, agent_state, venv_state, obs, key, steps: int,
-                    read_step=SINGLE_AGENT_STEPS):  # fmt: skip
+                    read_step=ONE_AGENT_PER_ENV.read_step):  # fmt: skip
     """``steps`` vector steps acting with ``agent``'s current policy: returns (venv_state, obs after
     the last step, :class:`Rollout`). ``read_step`` is the scenario kind's
     (:meth:`~xrl_jax.train.kinds.base.ScenarioKind.read_step`): on the Intersection every agent slot
@@ -99,17 +99,16 @@ def rollout_batch(rollout: Rollout, gamma, gae_lambda, masked: bool = False) -> 
     return jax.tree.map(flat, batch)
 
 
-def iteration(agent, venv, env_params, agent_state, venv_state, obs, key, steps: int, kind=None):
+def iteration(agent, venv, env_params, agent_state, venv_state, obs, key, steps: int,
+              kind: ScenarioKind = ONE_AGENT_PER_ENV):  # fmt: skip
     """One rollout and the updates on it: returns (agent_state, venv_state, obs, rollout, metrics).
     ``kind``: the scenario kind whose steps these are (default: one agent per env)."""
     rollout_key, update_key = jax.random.split(key)
-    read_step = SINGLE_AGENT_STEPS if kind is None else kind.read_step
     venv_state, obs, rollout = collect_rollout(
-        agent, venv, env_params, agent_state, venv_state, obs, rollout_key, steps, read_step
+        agent, venv, env_params, agent_state, venv_state, obs, rollout_key, steps, kind.read_step
     )
     hp = agent_state.hparams
-    masked = kind is not None and kind.idle_actors
-    batch = rollout_batch(rollout, hp.gamma, hp.gae_lambda, masked)
+    batch = rollout_batch(rollout, hp.gamma, hp.gae_lambda, kind.idle_actors)
     agent_state, metrics = agent.update(update_key, agent_state, batch)
     return agent_state, venv_state, obs, rollout, metrics
 
