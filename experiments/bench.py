@@ -218,12 +218,16 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     except ConfigError as err:
         parser.error(str(err))
     if args.command == "rejax":
+        import importlib.util
+
         rollout = args.envs * args.rollout_steps
         if args.steps % rollout or rollout % args.minibatches:
             parser.error(
                 f"--steps must be a multiple of one rollout (--envs x --rollout-steps = {rollout}), "
                 "which --minibatches must split"
             )
+        if importlib.util.find_spec("rejax") is None:  # before our side trains for an hour
+            parser.error("bench.py rejax needs rejax: pip install -e '.[gymnax-tests]'")
     if args.command != "train":
         return
     if any(seeds % devices_for(seeds, n) for seeds in args.seeds for n in args.devices):

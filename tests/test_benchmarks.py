@@ -39,6 +39,8 @@ def bench():
         (["train", "--set", "log_interval"], "--set expects KEY=VALUE, got 'log_interval'"),
         (["profile", "--set", "foo=1"], "unknown setting 'foo'"),
         (["train", "--seeds", "1", "--set", "log_interval=x"], "log_interval"),
+        (["rejax", "--steps", "1000"], "--steps must be a multiple of one rollout"),
+        (["rejax", "--envs", "4", "--rollout-steps", "3", "--steps", "12"], "which --minibatches must split"),
     ],
 )
 def test_bench_refuses_bad_input_in_one_line(bench, capsys, args, message):
@@ -144,3 +146,14 @@ def test_profile_of_a_smoke_chunk_accounts_for_its_ops():
     shares = [p["share"] for p in out["parts"]]
     assert out["ops_ms"] > 0 and abs(sum(shares) - 1) < 1e-9
     assert any("MixtureCategoricalActor" in p["part"] for p in out["parts"])
+
+
+def test_bench_rejax_without_rejax_says_what_to_install(bench, capsys, monkeypatch):
+    """Checked before anything trains: our side of the comparison would run first, for up to an hour."""
+    import importlib.util
+
+    real = importlib.util.find_spec
+    without_rejax = lambda name, *rest: None if name == "rejax" else real(name, *rest)
+    monkeypatch.setattr(importlib.util, "find_spec", without_rejax)
+    status, _, err = call(bench, capsys, "rejax", "--steps", "4096")
+    one_line_error(status, err, "bench.py rejax needs rejax", "gymnax-tests")
