@@ -2,6 +2,7 @@
 
     python experiments/explain.py --run RESULTS_DIR [--seed i] [--episode j] [--step k] [--slot s]
         [--format png|gif|mp4 | --out FILE]
+    python experiments/explain.py --stats RESULTS_DIR [--out DIR]
 
 The agent of seed ``i`` is restored from the run's newest checkpoint and drives evaluation track
 ``j`` (the fixed tracks of the run's evaluations) in its evaluation mode; the episode is one
@@ -17,6 +18,12 @@ car at step 0) and shows that car's explanation: weight index 0 is the neutral (
 component, drawn at the ego car, index k >= 1 the vehicle in row k-1 of its observation. A slot is
 refilled by a new car after its car finished or crashed; the frames follow the slot (the title
 names the car and marks a new one) and show the top view without glyphs while the slot is empty.
+
+``--stats`` explains every seed's whole evaluation instead (the racing runs: every held-out track;
+the Intersection: every evaluation episode, every car) and writes what the X agents attend to: where
+the weight goes in the ego frame, by object kind, distance and time to contact, how many objects
+carry 90 % of it (by speed), how much it moves from step to step and how alike the seeds are on the
+same observations (``xrl_jax/explain/run_statistics.py``; docs/results.md reads them).
 
 Runs on a user's env (``--import`` the module that registers it) replay evaluation episode ``j`` from
 its fixed reset and draw one PNG: the objects at step ``k`` by weight, and every slot's weight over
@@ -42,6 +49,7 @@ from cli_args import (
 )
 
 FORMATS = (".png", ".gif", ".mp4")
+DELETION_EPISODES = 20  # --stats: evaluation episodes of the deletion curves' returns
 PROG = "explain.py"
 
 
@@ -71,8 +79,13 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument(
-        "--run", required=True, metavar="RESULTS_DIR", help="results folder of experiments/run.py"
+    what = parser.add_mutually_exclusive_group(required=True)
+    what.add_argument("--run", metavar="RESULTS_DIR", help="results folder of experiments/run.py")
+    what.add_argument(
+        "--stats",
+        metavar="RESULTS_DIR",
+        help="statistics of the explanations over every seed's whole evaluation instead of one "
+        "episode's figure: RESULTS_DIR/explain/stats/stats.json and stats.png (or into --out DIR)",
     )
     parser.add_argument(
         "--import", dest="imports", metavar="MODULE", action="append", default=[], help=IMPORT_HELP
@@ -102,6 +115,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="JSON-lines attributions (default: <figure without suffix>.attributions.jsonl)",
     )
     parser.add_argument("--key", type=non_negative_int, default=0, help="PRNG key of the episode (default 0)")
+    parser.add_argument(
+        "--deletion-episodes",
+        type=non_negative_int,
+        default=DELETION_EPISODES,
+        help="--stats: evaluation episodes on which the deletion curves' returns are measured "
+        "(default 20; 0: no deletion curves)",
+    )
     parser.add_argument(
         "--threshold",
         type=fraction,
@@ -143,6 +163,10 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         return fail(PROG, problem)
     args = build_parser().parse_args(argv)
+    if args.stats:
+        return statistics(args)
+    if args.deletion_episodes != DELETION_EPISODES:
+        return fail(PROG, "--deletion-episodes is an option of --stats, not of one episode's figure")
     out = Path(args.out) if args.out else default_out(args)
     suffix = out.suffix.lower()
     if suffix not in FORMATS:
@@ -180,6 +204,38 @@ def main(argv: list[str] | None = None) -> int:
     except (ExplainError, RunFolderError) as err:
         if made and not any(out.parent.iterdir()):
             out.parent.rmdir()
+        return fail(PROG, err)
+    print(written)
+    return 0
+
+
+# What --stats takes besides the run: the sweep point, the policy's key and where to write.
+EPISODE_OPTIONS = ("seed", "episode", "step", "format", "attributions", "threshold", "max_steps", "width",
+                   "height", "fps", "mirrored", "slot", "all_slots")  # fmt: skip
+
+
+def statistics(args: argparse.Namespace) -> int:
+    """``--stats RESULTS_DIR``: every seed's evaluation explained; the summary and its figure."""
+    defaults = build_parser().parse_args(["--stats", args.stats])
+    given = [name for name in EPISODE_OPTIONS if getattr(args, name) != getattr(defaults, name)]
+    if given:
+        options = ", ".join("--" + name.replace("_", "-") for name in given)
+        return fail(
+            PROG, f"{options}: options of one episode's figure, not of --stats (every seed, every episode)"
+        )
+    from xrl_jax.explain.run_statistics import write_statistics
+    from xrl_jax.runs.folder import RunFolderError, run_paths
+
+    run = Path(args.stats)
+    out = Path(args.out) if args.out else run_paths(run)["explain"] / "stats"
+    if args.out and out.suffix:
+        return fail(PROG, f"--out {out} with --stats is a folder (stats.json and stats.png go into it)")
+    try:
+        written = write_statistics(
+            run, out, args.point, args.key, args.deletion_episodes,
+            note=lambda message: print(f"{PROG}: {message}", file=sys.stderr),
+        )  # fmt: skip
+    except (ValueError, RunFolderError) as err:
         return fail(PROG, err)
     print(written)
     return 0

@@ -318,3 +318,104 @@ def test_intersection_baseline_shows_only_its_distribution(cli, tmp_path, capsys
     assert "baseline without per-object explanations" in err
     rows = read_lines(tmp_path / "x.attributions.jsonl")
     assert len(rows) == 20 and all(not r["explained"] and r["objects"] == [] for r in rows)
+
+
+# ------------------------------------------------------------------------------------------------
+# --stats: every seed's whole evaluation explained
+# ------------------------------------------------------------------------------------------------
+
+
+def test_stats_refuses_what_it_cannot_take_in_one_line(cli, xdsac_run, tmp_path, capsys):
+    """Checked before anything is restored: the options of one episode's figure, a file for the
+    folder, a baseline, a sweep point out of range; nothing written."""
+    out = tmp_path / "stats"
+    for options, fragment in (
+        (["--step", 3], "--step: options of one episode's figure"),
+        (["--seed", 1, "--mirrored"], "--seed, --mirrored: options"),
+        (["--out", tmp_path / "stats.png"], "is a folder"),
+        (["--point", 1, "--out", out], "sweep point 1 out of range"),
+    ):
+        one_line_error(*call(cli, capsys, "--stats", xdsac_run, *options)[::2], fragment)
+    one_line_error(*call(cli, capsys, "--stats", xdsac_run, "--run", xdsac_run)[::2], "not allowed with")
+    one_line_error(
+        *call(cli, capsys, "--run", xdsac_run, "--deletion-episodes", 3, "--out", tmp_path / "x.png")[::2],
+        "--deletion-episodes is an option of --stats",
+    )
+    from xrl_jax.runs import config_document
+    from xrl_jax.train import resolve_config
+
+    baseline = tmp_path / "dsac"  # refused from its config alone: no checkpoint needed
+    baseline.mkdir()
+    config = config_document(resolve_config("tracking", "dsac", "smoke"), ["test"])
+    (baseline / "config.json").write_text(json.dumps(config))
+    one_line_error(
+        *call(cli, capsys, "--stats", baseline, "--deletion-episodes", 0, "--out", out)[::2],
+        "dsac is a baseline",
+        "--deletion-episodes 0",
+    )
+    one_line_error(*call(cli, capsys, "--stats", tmp_path / "none", "--out", out)[::2], "does not exist")
+    assert not out.exists()
+
+
+def check_stats(folder: Path, kinds: list[str], seeds: int = 1) -> dict:
+    summary = json.loads((folder / "stats.json").read_text())
+    assert summary["seeds"] == seeds and summary["kinds"] == kinds
+    # Every step's weight is somewhere: the kinds' shares add up to one per step (float32 weights
+    # summed over a few hundred steps: 1e-5).
+    np.testing.assert_allclose(sum(s["estimate"] for s in summary["kind"]["share"]), 1.0, rtol=1e-5)
+    present = summary["size"]["objects_present"]["estimate"]
+    assert 1 <= summary["size"]["mean"]["estimate"] <= present + 1  # + 1: the neutral component
+    assert 0.0 <= summary["stability"]["mean_change"]["estimate"] <= 1.0
+    assert summary["agreement"]["similarity"] == [[1.0] * seeds for _ in range(seeds)] or seeds > 1
+    with Image.open(folder / "stats.png") as image:
+        assert image.size[0] > 1000
+    return summary
+
+
+def check_deletion(deletion: dict, rankers: tuple[str, ...], metrics: list[str], seeds: int = 1) -> None:
+    assert set(deletion["rankers"]) == set(rankers) and deletion["metrics"] == metrics
+    assert set(deletion["against_random"]) == set(rankers) - {"random"}
+    for curves in deletion["rankers"].values():
+        tv = np.array(curves["tv"]["per_seed"])
+        assert tv.shape == (seeds, len(deletion["ks"]))
+        # Nothing deleted, nothing changed: the two passes over the same observations round alike
+        # up to float32's few ulps of probabilities that sum to one.
+        np.testing.assert_allclose(tv[:, 0], 0.0, atol=1e-6)
+        assert np.all((tv >= -1e-6) & (tv <= 1 + 1e-6))
+        # k = 0 is the agent's own evaluation for every ranker: the same actions, but each ranker's
+        # program sums the float32 rewards (600 steps x 8 cars) in its own order: 1e-5 relative.
+        np.testing.assert_allclose(
+            np.array(curves["return"]["per_seed"])[:, 0],
+            np.array(deletion["rankers"]["random"]["return"]["per_seed"])[:, 0],
+            rtol=1e-5,
+        )
+
+
+@pytest.mark.slow  # drives every evaluation track and episode; the default tier checks the refusals
+def test_stats_of_a_racing_and_an_intersection_run(cli, xdsac_run, intersection_run, tmp_path, capsys):
+    status, out, err = call(cli, capsys, "--stats", xdsac_run, "--deletion-episodes", 2)
+    assert status == 0, err
+    assert "seed 0:" in err and "deleting by weight vs random" in out
+    folder = xdsac_run / "explain" / "stats"
+    summary = check_stats(folder, ["centre-line point"])
+    assert len(summary["slot"]["share"]) == 25  # Tracking's 25 points ahead
+    check_deletion(summary["deletion"], ("weight", "random"), ["tv", "return"])
+    assert summary["deletion"]["episodes"] == 2 and (folder / "deletion.png").is_file()
+
+    status, _, err = call(
+        cli, capsys, "--stats", intersection_run, "--out", tmp_path / "ix", "--deletion-episodes", 1
+    )
+    assert status == 0, err
+    summary = check_stats(tmp_path / "ix", ["same approach", "oncoming", "crossing", "neutral"])
+    check_deletion(summary["deletion"], ("weight", "random"), ["tv", "return", "trips_completed"])
+
+
+@pytest.mark.slow  # a baseline's post-hoc rankings; the default tier checks the refusals
+def test_stats_of_a_baseline_are_its_post_hoc_deletion_curves(cli, tmp_path, capsys):
+    run = make_run_folder(tmp_path / "sac", "tracking", "sac")
+    status, out, err = call(cli, capsys, "--stats", run, "--deletion-episodes", 2, "--out", tmp_path / "s")
+    assert status == 0, err
+    summary = json.loads((tmp_path / "s" / "stats.json").read_text())
+    assert "size" not in summary and not (tmp_path / "s" / "stats.png").exists()
+    check_deletion(summary["deletion"], ("occlusion", "gradient_x_input", "random"), ["tv", "return"])
+    assert "deleting by occlusion vs random" in out

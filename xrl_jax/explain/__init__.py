@@ -6,6 +6,16 @@ Modules, by what they hold:
 * :mod:`~xrl_jax.explain.explanations`: the per-object explanation of a policy and its pruning,
   and episodes rolled out on the device with an explanation per step (its names are re-exported
   here);
+* :mod:`~xrl_jax.explain.faithfulness`: faithfulness measured: objects deleted in order of importance
+  (mixture weight, random, occlusion, gradient × input) and how much the action distribution (total
+  variation) and the return (:class:`~xrl_jax.explain.faithfulness.DeletingAgent` in the evaluation)
+  change;
+* :mod:`~xrl_jax.explain.statistics`: statistics of explanations over many steps (weight maps, object
+  kinds, distance, time to contact, size, step-to-step change, agreement between seeds) on plain arrays;
+* :mod:`~xrl_jax.explain.evaluation_steps`, :mod:`~xrl_jax.explain.run_statistics`,
+  :mod:`~xrl_jax.explain.run_deletion`, :mod:`~xrl_jax.explain.statistics_figures`: a trained run's
+  whole evaluation explained, its statistics and deletion curves over seeds and their figures
+  (``experiments/explain.py --stats``);
 * :mod:`~xrl_jax.explain.glyphs`: what one object's action distribution looks like in a glyph;
 * :mod:`~xrl_jax.explain.scenes`: where a step's observed objects are in the world;
 * :mod:`~xrl_jax.explain.drawing`: glyphs drawn onto the bird view of ``envs.render``;
