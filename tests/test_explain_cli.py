@@ -366,6 +366,9 @@ def check_stats(folder: Path, kinds: list[str], seeds: int = 1) -> dict:
     present = summary["size"]["objects_present"]["estimate"]
     assert 1 <= summary["size"]["mean"]["estimate"] <= present + 1  # + 1: the neutral component
     assert 0.0 <= summary["stability"]["mean_change"]["estimate"] <= 1.0
+    situations = summary["situations"]
+    steps = np.add(situations["before_early_end"]["steps"], situations["other"]["steps"])
+    assert steps.tolist() == summary["steps_per_seed"]  # every step is in one situation
     assert summary["agreement"]["similarity"] == [[1.0] * seeds for _ in range(seeds)] or seeds > 1
     with Image.open(folder / "stats.png") as image:
         assert image.size[0] > 1000

@@ -176,6 +176,7 @@ def test_racing_steps_place_kind_contact_and_identity_of_cones():
         ),
         explanations=SimpleNamespace(weights=np.array([[[0.8, 0.2, 0], [0.6, 0.4, 0], [0.6, 0.4, 0]]])),
         rewards=np.array([[1.0, 2.0, 5.0]]),
+        terminated=np.array([[False, True, True]]),  # its second step left the track (padding repeats)
     )
     trainer = SimpleNamespace(env=None, eval_params=SimpleNamespace(cone_normaliser=n))
     flat = _racing_steps("country_road", trainer, record)
@@ -187,6 +188,12 @@ def test_racing_steps_place_kind_contact_and_identity_of_cones():
     np.testing.assert_allclose(flat["speed"], [10, 10])
     np.testing.assert_array_equal(flat["follows"], [False, True])
     np.testing.assert_allclose(flat["returns"], [3.0])  # the padding step's reward is not the episode's
+    np.testing.assert_array_equal(flat["steps_to_early_end"], [1, 0])
+    record.terminated[0, 1] = False  # the time limit instead: no early end
+    np.testing.assert_array_equal(
+        _racing_steps("country_road", trainer, record)["steps_to_early_end"], [np.inf] * 2
+    )
+    record.terminated[0, 1] = True
     # Each cone keeps its world place (its identity) while its ego-frame place moves.
     np.testing.assert_allclose(flat["identity"][:, :2], [[[100, 70], [95, 50]]] * 2, atol=1e-9)
     steps = _concatenate([flat])
@@ -227,6 +234,7 @@ def test_intersection_steps_name_each_car_by_how_its_approach_meets_the_own():
         ),
         explanations=SimpleNamespace(weights=weights),
         rewards=np.ones((2, 8)),
+        done_reason=np.array([[0, 0, 3, 2, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0, 0, 0]]),
     )
     flat = _intersection_steps(record)
     # Slot by slot: slot 0's two steps come first.
@@ -241,3 +249,6 @@ def test_intersection_steps_name_each_car_by_how_its_approach_meets_the_own():
     np.testing.assert_array_equal(ego["identity"][:4, 0], [-1, 11, 12, 13])
     np.testing.assert_allclose(flat["speed"][:2], [10, 10])
     np.testing.assert_allclose(flat["returns"], [8.0])  # every car's reward of the episode
+    # Slot 2's car collides at step 0 (the record is hand-built: it goes on acting); slot 3's car
+    # leaves the road at step 0 and a new car takes the slot at step 1, whose end is not its own.
+    np.testing.assert_array_equal(flat["steps_to_early_end"], [np.inf] * 4 + [0, np.inf, 0, np.inf])

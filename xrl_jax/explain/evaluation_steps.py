@@ -27,6 +27,9 @@ AGREEMENT_STEPS = 4000  # steps per seed explained by every other seed (a unifor
 class ExplainedSteps:
     """One seed's explained evaluation steps (N), over the explanation's object slots (O).
 
+    ``steps_to_early_end[i]``: 0 at the step whose action ended the car's episode early (racing: it
+    left the track or idled; the Intersection: it left the road or collided), +inf where the car
+    reached the time limit or its goal.
     ``follows[i]``: step i is the next step of the same car as step i − 1 (so their weights can be
     compared); ``obs``: the observations the agent acted on, for explaining them with other seeds.
     """
@@ -39,6 +42,7 @@ class ExplainedSteps:
     closing: np.ndarray  # (N, O) m/s at which the distance shrinks (NaN: neutral)
     speed: np.ndarray  # (N,) m/s of the ego car
     follows: np.ndarray  # (N,) bool
+    steps_to_early_end: np.ndarray  # (N,) steps until this car's episode ends early (+inf: it does not)
     returns: np.ndarray  # (episodes,) each evaluation episode's return (all cars' for the Intersection)
     obs: Any  # (N, ...) per leaf
     kinds: tuple[str, ...]
@@ -138,6 +142,9 @@ def _racing_steps(env_name: str, trainer, record) -> dict:
         identity = np.broadcast_to(np.arange(rows.shape[-2], dtype=np.float64)[:, None], (*xy.shape[:-1], 1))
         kinds = ("centre-line point",)
     follows = valid & np.concatenate([np.zeros_like(valid[:, :1]), valid[:, :-1]], axis=1)
+    length = valid.sum(-1)
+    ended_early = np.asarray(record.terminated, bool)[np.arange(len(length)), np.maximum(length - 1, 0)]
+    steps_left = (length - 1)[:, None] - np.arange(valid.shape[1])[None, :]
     arrays = {
         "weights": _object_weights(record, rows),
         "present": rows[..., 0] > 0,
@@ -147,6 +154,7 @@ def _racing_steps(env_name: str, trainer, record) -> dict:
         "closing": closing,
         "speed": np.hypot(vx, vy),
         "follows": follows,
+        "steps_to_early_end": np.where(ended_early[:, None], steps_left, np.inf),
     }
     neutral = arrays["weights"].shape[-1] == rows.shape[-2] + 1  # weight index 0: the neutral component
     arrays = _with_neutral(arrays, neutral, rows.shape[:2], len(kinds))
@@ -207,6 +215,7 @@ def _intersection_steps(record) -> dict:
         "closing": closing,
         "speed": np.hypot(vx, vy),
         "follows": acted & same_car,
+        "steps_to_early_end": _steps_to_early_end(record, acted, seq),
     }
     neutral = arrays["weights"].shape[-1] == rows.shape[-2] + 1  # weight index 0: the neutral component
     arrays = _with_neutral(arrays, neutral, acted.shape, INTERSECTION_KINDS.index("neutral"))
@@ -216,6 +225,24 @@ def _intersection_steps(record) -> dict:
     flat["obs"] = jax.tree.map(lambda leaf: np.swapaxes(np.asarray(leaf), 0, 1)[by_slot], record.obs)
     total = np.sum(np.where(acted, np.asarray(record.rewards, np.float64), 0.0))
     return flat | {"returns": np.array([total]), "kinds": INTERSECTION_KINDS}
+
+
+LEFT_ROAD, COLLIDED = 2, 3  # done_reason codes of an Intersection car's early end
+
+
+def _steps_to_early_end(record, acted: np.ndarray, seq: np.ndarray) -> np.ndarray:
+    """(T, S) steps until the car in each slot ends early (left the road, collided); +inf if it does
+    not (it completes its route, or the episode ends first). Backwards over time, all slots at once."""
+    reason = np.asarray(record.done_reason)
+    early = acted & np.isin(reason, (LEFT_ROAD, COLLIDED))
+    steps = np.full(acted.shape, np.inf)
+    upcoming = np.full(acted.shape[1], np.inf)  # the step of the next early end of the car in the slot
+    for t in range(acted.shape[0] - 1, -1, -1):
+        if t + 1 < acted.shape[0]:  # a different car (or none) next: its end is not this car's
+            upcoming = np.where(acted[t + 1] & (seq[t + 1] == seq[t]), upcoming, np.inf)
+        upcoming = np.where(early[t], t, upcoming)
+        steps[t] = upcoming - t
+    return steps
 
 
 def _intersection_rollouts(trainer, agent_state, episodes: int, key):

@@ -70,6 +70,31 @@ def seed_statistics(steps: ExplainedSteps, x_edges, y_edges) -> dict[str, Any]:
         "present": steps.present.sum(-1),
         "change": change,
         "returns": steps.returns,
+        "situations": {name: _situation(steps, sizes, mask) for name, mask in _situations(steps).items()},
+    }
+
+
+BEFORE_END_STEPS = 20  # the last 2 s (10 steps a second) before a car's episode ended early
+
+
+def _situations(steps: ExplainedSteps) -> dict[str, np.ndarray]:
+    """Which steps are which situation: the last 2 s before an early end (left the track or road,
+    collided), and every other step."""
+    before = steps.steps_to_early_end < BEFORE_END_STEPS
+    return {"before_early_end": before, "other": ~before}
+
+
+def _situation(steps: ExplainedSteps, sizes: np.ndarray, mask: np.ndarray) -> dict[str, Any]:
+    """One situation's sums: steps, weight by kind, explanation sizes, weight-weighted distance."""
+    weights = np.where(steps.present[mask], steps.weights[mask], 0.0)
+    distance = np.where(np.isfinite(steps.distance[mask]), steps.distance[mask], 0.0)
+    placed = weights * np.isfinite(steps.distance[mask])
+    return {
+        "steps": int(mask.sum()),
+        "kind": weight_by_kind(steps.kind[mask], steps.weights[mask], steps.present[mask], len(steps.kinds)),
+        "size": sizes[mask],
+        "distance_mass": float(np.sum(placed * distance)),
+        "placed_mass": float(np.sum(placed)),
     }
 
 
@@ -153,6 +178,7 @@ def summarise(per_seed: list[dict], kinds: tuple[str, ...], x_edges, y_edges, si
             "by_speed": columns(speed_means),
             "steps_by_speed": speed_counts.astype(int).tolist(),
         },
+        "situations": _summarise_situations(per_seed),
         "stability": {
             "mean_change": _interval([np.mean(s["change"]) for s in per_seed]),
             "median_change": _interval([np.median(s["change"]) for s in per_seed]),
@@ -167,6 +193,24 @@ def summarise(per_seed: list[dict], kinds: tuple[str, ...], x_edges, y_edges, si
             "mean_same_top_between_seeds": float(same_top[off_diagonal].mean()) if len(per_seed) > 1 else 1.0,
         },
     }
+
+
+def _summarise_situations(per_seed: list[dict]) -> dict:
+    """Per situation, over the seeds that met it: its share of the steps, the weight by kind, the
+    mean explanation size and the weight's mean distance from the ego."""
+    summary = {}
+    for name in per_seed[0]["situations"]:
+        parts = [s["situations"][name] for s in per_seed]
+        met = [p for p in parts if p["steps"]]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            kind = np.stack([p["kind"].mass / p["steps"] for p in met]) if met else np.zeros((0, 0))
+            summary[name] = {
+                "steps": [p["steps"] for p in parts],
+                "kind_share": [_interval(kind[:, j]) for j in range(kind.shape[1])],
+                "size": _interval([np.mean(p["size"]) for p in met]),
+                "weighted_distance": _interval([np.float64(p["distance_mass"]) / p["placed_mass"] for p in met]),
+            }
+    return summary
 
 
 def explanation_statistics(
