@@ -208,7 +208,7 @@ def _summarise_situations(per_seed: list[dict]) -> dict:
                 "steps": [p["steps"] for p in parts],
                 "kind_share": [_interval(kind[:, j]) for j in range(kind.shape[1])],
                 "size": _interval([np.mean(p["size"]) for p in met]),
-                "weighted_distance": _interval([np.float64(p["distance_mass"]) / p["placed_mass"] for p in met]),
+                "weighted_distance": _interval([np.divide(p["distance_mass"], p["placed_mass"]) for p in met]),
             }
     return summary
 
