@@ -202,14 +202,14 @@ def _summarise_situations(per_seed: list[dict]) -> dict:
     for name in per_seed[0]["situations"]:
         parts = [s["situations"][name] for s in per_seed]
         met = [p for p in parts if p["steps"]]
-        distance_per_weight = [np.divide(p["distance_mass"], p["placed_mass"]) for p in met]
         with np.errstate(invalid="ignore", divide="ignore"):
+            distance_per_weight = [np.divide(p["distance_mass"], p["placed_mass"]) for p in met]
             kind = np.stack([p["kind"].mass / p["steps"] for p in met]) if met else np.zeros((0, 0))
             summary[name] = {
                 "steps": [p["steps"] for p in parts],
                 "kind_share": [_interval(kind[:, j]) for j in range(kind.shape[1])],
                 "size": _interval([np.mean(p["size"]) for p in met]),
-                "weighted_distance": _interval([distance_per_weight]),
+                "weighted_distance": _interval(distance_per_weight),
             }
     return summary
 
