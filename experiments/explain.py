@@ -227,7 +227,7 @@ def statistics(args: argparse.Namespace) -> int:
     from xrl_jax.runs.folder import RunFolderError, run_paths
 
     run = Path(args.stats)
-    out = Path(args.out) if args.out else run_paths(run)["explain"] / "stats"
+    out = Path(args.out) if args.out else run_paths(run)["explain_stats"]
     if args.out and out.suffix:
         return fail(PROG, f"--out {out} with --stats is a folder (stats.json and stats.png go into it)")
     try:

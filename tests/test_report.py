@@ -230,8 +230,14 @@ def test_table_one_puts_each_weight_depth_beside_sac_with_its_costs(tmp_path):
         fake_run(tmp_path / "sac", "country_road", "sac", "quick", [1.0, 2.0, 3.0, 4.0]),
         fake_run(tmp_path / "xsac", "country_road", "xsac", "quick", [5.0, 6.0, 7.0, 8.0]),
         *[
-            fake_run(tmp_path / f"w{d}", "country_road", "xsac", "quick", [9.0, 10.0, 11.0, 12.0],
-                     overrides={"weight_depth": str(d)})
+            fake_run(
+                tmp_path / f"w{d}",
+                "country_road",
+                "xsac",
+                "quick",
+                [9.0, 10.0, 11.0, 12.0],
+                overrides={"weight_depth": str(d)},
+            )
             for d in (1, 2)
         ],
         fake_run(tmp_path / "tracking", "tracking", "xsac", "quick", [1.0, 2.0]),
@@ -495,3 +501,47 @@ def test_every_trained_agent_has_a_colour_of_its_own():
 
     assert set(AGENT_COLOURS) == set(TRAINED_ALGOS)
     assert len(set(AGENT_COLOURS.values())) == len(AGENT_COLOURS)
+
+
+def test_the_report_tabulates_explanation_statistics_and_keeps_them(tmp_path):
+    """Issue 52: a run folder with ``explain.py --stats`` output gets a row (its numbers as written);
+    the kept records carry the statistics, so a report written again from them has the row too."""
+    from xrl_jax.report import explanation_rows
+
+    xdsac = fake_run(tmp_path / "xdsac", "country_road", "xdsac", "quick", [3.0, 4.0])
+    dsac = fake_run(tmp_path / "dsac", "country_road", "dsac", "quick", [1.0, 2.0])
+    interval = lambda e, lo, hi: {"estimate": e, "low": lo, "high": hi}
+    against = {"tv": interval(0.1, 0.05, 0.15), "return": interval(-8.0, -11.0, -5.0)}
+    deletion = lambda ranker: {"against_random": {ranker: against}}
+    explained = {
+        "seeds": 2,
+        "kinds": ["blue cone", "yellow cone"],
+        "kind": {"share": [interval(0.3, 0.2, 0.4), interval(0.7, 0.6, 0.8)]},
+        "size": {"mean": interval(4.5, 4.0, 5.0)},
+        "stability": {"mean_change": interval(0.092, 0.07, 0.11)},
+        "agreement": {"mean_similarity_between_seeds": 0.75},
+        "deletion": deletion("weight"),
+    }
+    for folder, written in ((xdsac, explained), (dsac, {"seeds": 2, "deletion": deletion("occlusion")})):
+        (folder / "explain" / "stats").mkdir(parents=True)
+        (folder / "explain" / "stats" / "stats.json").write_text(json.dumps(written))
+    rows = explanation_rows(read_runs([dsac, xdsac]))
+    by_agent = {row["agent"]: row for row in rows}
+    row = by_agent["xdsac (xdsac)"]
+    assert row["objects for 90 %"] == "4.50 [4.00, 5.00]" and row["step-to-step TV"] == "0.092 [0.070, 0.110]"
+    assert row["weight by kind"] == "yellow cone 0.70, blue cone 0.30"  # heaviest first
+    assert row["by weight vs random: return"] == "-8.00 [-11.00, -5.00]"
+    assert row["by occlusion vs random: TV"] == "-"  # a column of the baseline's
+    baseline = by_agent["dsac (dsac)"]
+    assert (
+        baseline["objects for 90 %"] == "-"
+        and baseline["by occlusion vs random: TV"] == "+0.100 [+0.050, +0.150]"
+    )
+    out = tmp_path / "report"
+    write_report([dsac, xdsac], out)
+    assert "## Explanations over the evaluation" in (out / "report.md").read_text()
+    again = tmp_path / "again"
+    write_report(sorted((out / "runs").iterdir()), again)
+    assert (again / "report.md").read_text().count("vs random") == (out / "report.md").read_text().count(
+        "vs random"
+    )

@@ -29,7 +29,7 @@ from xrl_jax.report_figures import (
     table_metrics,
     yardstick_name,
 )
-from xrl_jax.runs.folder import RunFolderError, first_nonfinite_metric, read_run_config
+from xrl_jax.runs.folder import RunFolderError, first_nonfinite_metric, read_run_config, run_paths
 from xrl_jax.runs.kept import distinct_runs, keep_records, protocol_groups
 from xrl_jax.runs.plots import plot_sweep
 from xrl_jax.runs.summary import summarize_pooled, summarize_run, summary_metrics
@@ -303,6 +303,40 @@ def table_one_rows(runs: list[Run], policy_costs=None) -> list[dict[str, str]]:
     return rows
 
 
+def explanation_rows(runs: list[Run]) -> list[dict[str, str]]:
+    """One row per run folder with explanation statistics (``explain.py --stats``): the explanation's
+    size and step-to-step change, how alike the seeds are, where the weight goes by object kind, and
+    the deletion curves against random order (mean over k > 0, mean over seeds [95 % CI])."""
+    rows = []
+    for run in runs:
+        for folder in run.folders:
+            path = run_paths(folder)["explain_stats"] / "stats.json"
+            if not path.is_file():
+                continue
+            stats = json.loads(path.read_text())
+            row = {"agent": f"{run.cfg.algo} ({folder.name})", "seeds": str(stats["seeds"])}
+            if "size" in stats:
+                kinds = sorted(
+                    zip(stats["kinds"], stats["kind"]["share"], strict=True), key=lambda k: -k[1]["estimate"]
+                )
+                alike = stats["agreement"]["mean_similarity_between_seeds"]
+                by_kind = ", ".join(f"{k} {s['estimate']:.2f}" for k, s in kinds)
+                row |= {"objects for 90 %": _interval_cell(stats["size"]["mean"]),
+                        "step-to-step TV": _interval_cell(stats["stability"]["mean_change"], 3),
+                        "seeds alike (1 - TV)": f"{alike:.2f}", "weight by kind": by_kind}  # fmt: skip
+            for ranker, differences in stats.get("deletion", {}).get("against_random", {}).items():
+                row[f"by {ranker} vs random: TV"] = _interval_cell(differences["tv"], 3, sign=True)
+                row[f"by {ranker} vs random: return"] = _interval_cell(differences["return"], sign=True)
+            rows.append(row)
+    header = list(dict.fromkeys(key for row in rows for key in row))
+    return [{key: row.get(key, "-") for key in header} for row in rows]
+
+
+def _interval_cell(interval: dict, digits: int = 2, sign: bool = False) -> str:
+    form = f"{'+' if sign else ''}.{digits}f"
+    return f"{interval['estimate']:{form}} [{interval['low']:{form}}, {interval['high']:{form}}]"
+
+
 def _write_report(
     runs: list[Run], out: Path, controller_speed, controller: bool, early_fraction: float, policy_costs=None
 ) -> Path:
@@ -367,6 +401,16 @@ def _write_report(
                   "continuous Country Road. FLOPs per action are XLA's count of one action's computation "
                   "(xrl_jax/benchmarks/table_one.py): as run, on the present cones packed, and on every "
                   "cone slot (the paper's count).", "", markdown_table(table_one), ""]  # fmt: skip
+    explained = explanation_rows(runs)
+    if explained:
+        lines += ["## Explanations over the evaluation", "",
+                  "From `explain.py --stats` (xrl_jax/explain/run_statistics.py): the fewest objects that "
+                  "carry 90 % of the weight, IQM over seeds [95 % CI]; the weight's step-to-step change, "
+                  "following each object (total variation); the seeds' weights on the same observations; the "
+                  "share of the weight per object kind. Deletion curves: removing the objects ranked first "
+                  "from every observation against removing as many at random, the difference of the policy's "
+                  "change and of the return (mean over 1-8 objects removed; mean over seeds [95 % CI]).", "",
+                  markdown_table(explained), ""]  # fmt: skip
     (out / "improvement.json").write_text(json.dumps(all_improvements, indent=2) + "\n")
     if controller:
         lines += ["The hand controller (docs/carenv-single-agent.md §8.3) follows the centre line at a "

@@ -49,6 +49,7 @@ def run_paths(out: Path) -> dict[str, Path]:
         "trackers": out / "trackers.json",  # what the trackers of runs.trackers have received
         "tensorboard": out / "tensorboard",
         "explain": out / "explain",  # experiments/explain.py's figures and attributions, by default
+        "explain_stats": out / "explain" / "stats",  # explain.py --stats: stats.json and its figures
     }
 
 

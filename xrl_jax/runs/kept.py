@@ -118,12 +118,14 @@ def protocol_groups(configs: list[tuple[Path, Any]], note=None) -> list[list[tup
 
 
 def keep_records(folders: list[Path], out: Path) -> None:
-    """Copy what the report reads of each run folder into ``out/runs/<folder name>``: its ``config.json``
-    and its evaluation lines without their per-episode values. ``report.py out/runs/* NEW_RUN --out
-    out`` then writes the report again with a run added, after the run folders are gone (a user's
-    clone, another machine). The copies replace the folder's earlier ones as a whole, so it holds
-    exactly the runs of this report; given as sources themselves, they are read before they are
-    replaced. Runs whose folders share a name are kept as ``<name>``, ``<name>-2``, ..."""
+    """Copy what the report reads of each run folder into ``out/runs/<folder name>``: its
+    ``config.json``, its evaluation lines without their per-episode values and its explanation
+    statistics (``explain/stats/stats.json``, where ``explain.py --stats`` wrote them).
+    ``report.py out/runs/* NEW_RUN --out out`` then writes the report again with a run added, after
+    the run folders are gone (a user's clone, another machine). The copies replace the folder's
+    earlier ones as a whole, so it holds exactly the runs of this report; given as sources
+    themselves, they are read before they are replaced. Runs whose folders share a name are kept as
+    ``<name>``, ``<name>-2``, ..."""
     staging, kept, former = out / f".{RECORDS}.new", out / RECORDS, out / f".{RECORDS}.old"
     if former.exists() and not kept.exists():  # a report stopped between the two renames below
         former.rename(kept)
@@ -141,6 +143,10 @@ def keep_records(folders: list[Path], out: Path) -> None:
         shutil.copyfile(source["config"], copy["config"])
         for name, rows in _evaluations(folder).items():
             (copy["eval"] / name).write_text("".join(json.dumps(row) + "\n" for row in rows))
+        stats = source["explain_stats"] / "stats.json"  # explain.py --stats, where the run has them
+        if stats.is_file():
+            copy["explain_stats"].mkdir(parents=True)
+            shutil.copyfile(stats, copy["explain_stats"] / "stats.json")
     if kept.exists():  # swapped, never deleted first: the old copies may be this report's sources
         kept.rename(former)
     staging.rename(kept)
