@@ -545,3 +545,21 @@ def test_the_report_tabulates_explanation_statistics_and_keeps_them(tmp_path):
     assert (again / "report.md").read_text().count("vs random") == (out / "report.md").read_text().count(
         "vs random"
     )
+
+
+def test_the_report_says_how_intersection_cars_end(tmp_path):
+    """Issue 50 (safety, looked at): on the Intersection the cars per episode that completed their
+    trip, left the road or collided, a mean over seeds (fake_run: trips = return / 5)."""
+    from xrl_jax.report import ending_rows
+
+    run = fake_run(tmp_path / "xsac", "intersection", "xsac", "quick", [10.0, 20.0])
+    for seed, path in enumerate(sorted((run / "eval").iterdir())):
+        rows = [json.loads(line) for line in path.read_text().splitlines()]
+        rows[-1] |= {"avg_come_off_vehicles": 1.0 + seed, "avg_collided_vehicles": 4.0 + 2 * seed}
+        path.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    (row,) = ending_rows(read_runs([run]), "intersection")
+    ended = (row["completed trips"], row["left the road"], row["collided"])
+    assert row["seeds"] == "2" and ended == ("3.0", "1.5", "5.0")
+    out = tmp_path / "report"
+    write_report([run], out)
+    assert "episodes end (cars per episode" in (out / "report.md").read_text()

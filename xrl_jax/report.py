@@ -242,24 +242,33 @@ def _make_report_folder(out: Path) -> None:
         raise ReportError(f"cannot create the report folder --out {out}: {err.strerror or err}") from None
 
 
+RACING_ENDINGS = {"left the track": "avg_end_left_track", "time limit": "avg_end_time_limit",
+                  "idled out": "avg_end_idling", "invalid action": "avg_end_invalid_action",
+                  "distance at the end (m)": "avg_end_progress_m"}  # fmt: skip
+INTERSECTION_ENDINGS = {"completed trips": "avg_trips_completed", "left the road": "avg_come_off_vehicles",
+                        "collided": "avg_collided_vehicles"}  # fmt: skip
+
+
 def ending_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
-    """Why and where each plain run's final-evaluation episodes end, on the racing scenarios: the share
-    that left the track, hit the time limit, idled out or sent an invalid action, and the mean
-    distance driven along the track at the end (m), each a mean over the seeds whose final evaluation
-    records it (``avg_end_*``, :func:`xrl_jax.evaluation.summarize_episodes`). Empty where none does."""
-    columns = {"left the track": "avg_end_left_track", "time limit": "avg_end_time_limit",
-               "idled out": "avg_end_idling", "invalid action": "avg_end_invalid_action",
-               "distance at the end (m)": "avg_end_progress_m"}  # fmt: skip
+    """Why and where each plain run's final-evaluation episodes end, a mean over the seeds whose final
+    evaluation records it: on the racing scenarios the share of episodes that left the track, hit the
+    time limit, idled out or sent an invalid action, and the distance driven along the track at the
+    end (m, ``avg_end_*``, :func:`xrl_jax.evaluation.summarize_episodes`); on the Intersection the
+    cars per episode that completed their trip, left the road or collided. Empty where none does."""
+    counts = env.startswith("intersection")  # cars per episode, not shares of the episodes
+    columns = INTERSECTION_ENDINGS if counts else RACING_ENDINGS
     rows = []
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
     for run in sorted(plain, key=lambda r: (ALGO_ORDER.index(r.cfg.algo), r.cfg.preset, r.name)):
-        recorded = [row for row in run.summary["per_seed"].values() if "avg_end_left_track" in row]
+        recorded = [
+            row for row in run.summary["per_seed"].values() if all(k in row for k in columns.values())
+        ]
         if not recorded:
             continue
         row = {"agent": run.label, "seeds": str(len(recorded))}
         for label, key in columns.items():
             value = float(np.mean([seed_row[key] for seed_row in recorded]))
-            row[label] = f"{value:.1f}" if key == "avg_end_progress_m" else f"{value:.2f}"
+            row[label] = f"{value:.1f}" if counts or key == "avg_end_progress_m" else f"{value:.2f}"
         rows.append(row)
     return rows
 
@@ -359,8 +368,9 @@ def _write_report(
         lines += [markdown_table(rows), ""]
         endings = ending_rows(runs, env)
         if endings:
-            lines += ["How the final evaluation's episodes end (share of episodes; mean over seeds; from "
-                      "runs whose evaluations record it):", "", markdown_table(endings), ""]  # fmt: skip
+            unit = "cars per episode" if env.startswith("intersection") else "share of episodes"
+            lines += [f"How the final evaluation's episodes end ({unit}; mean over seeds; from runs whose "
+                      "evaluations record it):", "", markdown_table(endings), ""]  # fmt: skip
         figure = env_figure(runs, env, references)
         if figure is not None:
             figure.savefig(out / f"{env}.png", dpi=110)
