@@ -410,7 +410,9 @@ def test_stats_of_a_racing_and_an_intersection_run(cli, xdsac_run, intersection_
     )
     assert status == 0, err
     summary = check_stats(tmp_path / "ix", ["same approach", "oncoming", "crossing", "neutral"])
-    check_deletion(summary["deletion"], ("weight", "random"), ["tv", "return", "trips_completed"])
+    check_deletion(
+        summary["deletion"], ("weight", "random"), ["tv", "return", "trips_completed", "early_terminations"]
+    )
 
 
 @pytest.mark.slow  # a baseline's post-hoc rankings; the default tier checks the refusals

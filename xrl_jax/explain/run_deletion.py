@@ -1,12 +1,13 @@
-"""Deletion curves of a trained run (``experiments/explain.py --stats``): how fast the policy and the
-return fall apart when the objects an explanation ranks first are removed from every observation.
+"""Deletion curves of a trained run (``experiments/explain.py --stats``): how much the policy and the
+evaluation change when the objects an explanation ranks first are removed from every observation.
 
 Per seed and ranker (:data:`xrl_jax.explain.faithfulness.RANKERS`): the mean total variation between
 the policy and the policy without its top-k objects over a sample of the seed's evaluation steps, and
-the evaluation's mean return (and, on the Intersection, completed trips) of the agent acting on every
-observation without its top-k objects. The X agents rank by their own weights; the Deep Set
-baselines, which have none, by the post-hoc occlusion and gradient × input; both against a random
-order. Each ranker's evaluations are one compiled program vmapped over k.
+the evaluation's mean return (on the Intersection also completed trips and early terminations: cars
+that left the road or collided) of the agent acting on every observation without its top-k objects.
+The X agents rank by their own weights; the Deep Set baselines, which have none, by the post-hoc
+occlusion and gradient × input; both against a random order. Each ranker's evaluations are one
+compiled program vmapped over k.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ BASELINE_RANKERS = ("occlusion", "gradient_x_input", "random")
 POLICY_STATES = 1000  # evaluation steps per seed on which the policy's change is measured
 STATE_CHUNK = 100  # states at a time: occlusion runs one forward pass per object slot
 TV_SAMPLES = 256  # Monte Carlo draws per state for a continuous policy's total variation
+TRAFFIC_METRICS = ("trips_completed", "early_terminations")  # the Intersection's, per episode
 
 
 def rankers_of(agent) -> tuple[str, ...]:
@@ -86,11 +88,7 @@ def deletion_curves(cfg, trainer, agent_states, samples, episodes: int, key, not
     agent = trainer.agent
     num_objects = cfg.scenario.num_objects
     ks = tuple(k for k in DELETION_KS if k < num_objects)
-    metrics = (
-        ("return", "trips_completed")
-        if "avg_trips_completed" in dict(cfg.scenario.summary_metrics)
-        else ("return",)
-    )
+    metrics = ("return", *(m for m in TRAFFIC_METRICS if f"avg_{m}" in dict(cfg.scenario.summary_metrics)))
     seeds = jax.tree.leaves(agent_states)[0].shape[0]
     per_seed = {r: {"tv": [], **{m: [] for m in metrics}} for r in rankers_of(agent)}
     for ranker, rows in per_seed.items():

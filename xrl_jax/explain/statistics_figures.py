@@ -137,6 +137,7 @@ METRIC_LABELS = {
     "tv": "policy change (total variation)",
     "return": "evaluation return",
     "trips_completed": "completed trips",
+    "early_terminations": "early terminations (off the road, collided)",
 }
 
 
