@@ -150,9 +150,11 @@ def draw_deletion(deletion: dict, path: str | Path, title: str = "") -> Path:
     import matplotlib.pyplot as plt
 
     metrics = deletion["metrics"]
-    fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 4.2), squeeze=False)
+    columns = min(len(metrics), 2)  # the Intersection's four metrics in a square, not a strip
+    rows = -(-len(metrics) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(5.6 * columns, 3.8 * rows + 0.6), squeeze=False)
     ks = np.asarray(deletion["ks"])
-    for ax, metric in zip(axes[0], metrics, strict=True):
+    for ax, metric in zip(axes.flat, metrics, strict=True):
         for ranker, curves in deletion["rankers"].items():
             colour, style, label = RANKER_STYLES[ranker]
             intervals = curves[metric]["over_seeds"]
@@ -166,7 +168,7 @@ def draw_deletion(deletion: dict, path: str | Path, title: str = "") -> Path:
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), frameon=False)
     fig.suptitle(title)
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.tight_layout(rect=(0, 0.06 / rows, 1, 1))
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
