@@ -340,8 +340,12 @@ def explanation_rows(runs: list[Run]) -> list[dict[str, str]]:
                     for ranker, differences in rankings.items()
                 )
             rows.append(row)
-    header = list(dict.fromkeys(key for row in rows for key in row))
+    header = [key for key in EXPLANATION_COLUMNS if any(key in row for row in rows)]
     return [{key: row.get(key, "-") for key in header} for row in rows]
+
+
+EXPLANATION_COLUMNS = ("agent", "seeds", "objects for 90 %", "step-to-step TV", "seeds alike (1 - TV)",
+                       "weight by kind", "deleting the top-ranked objects, against random")  # fmt: skip
 
 
 def _difference_cell(item: tuple[str, dict]) -> str:
