@@ -417,7 +417,7 @@ def test_stats_of_a_racing_and_an_intersection_run(cli, xdsac_run, intersection_
 
 @pytest.mark.slow  # a baseline's post-hoc rankings; the default tier checks the refusals
 def test_stats_of_a_baseline_are_its_post_hoc_deletion_curves(cli, tmp_path, capsys):
-    run = make_run_folder(tmp_path / "sac", "tracking", "sac")
+    run = make_run_folder(tmp_path / "dsac", "tracking", "dsac")  # discrete: exact TV, one gradient
     status, out, err = call(cli, capsys, "--stats", run, "--deletion-episodes", 2, "--out", tmp_path / "s")
     assert status == 0, err
     summary = json.loads((tmp_path / "s" / "stats.json").read_text())
