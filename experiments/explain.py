@@ -64,6 +64,13 @@ reading the figure:
 attributions (JSON lines, one per step): step, ego pose, action, control, reward and per object
   index, weight, world x, y and its type (cone colour / trajectory index / vehicle row / neutral).
 
+--stats RESULTS_DIR: every seed's whole evaluation explained (racing: every held-out track; the
+  Intersection: every episode and car). stats.json and stats.png: where the weight goes (ego-frame
+  map, object kind, distance, time to contact), how many objects carry 90 % of it (by speed), its
+  step-to-step change, how alike the seeds are, the last 2 s before an early end; deletion.png: the
+  policy's change and the evaluation when the top-ranked objects are removed (X agents by weight,
+  baselines by occlusion and gradient x input) against random removal (docs/results.md).
+
 intersection: --slot picks the followed vehicle slot (default: first occupied at step 0); weight
   index 0 is the neutral (state-only) component at the ego car, index k the vehicle in observation
   row k-1 (its slot and car number are in the attributions). Rows also carry slot, car (spawn
