@@ -244,6 +244,8 @@ def statistics(args: argparse.Namespace) -> int:
         )  # fmt: skip
     except (ValueError, RunFolderError) as err:
         return fail(PROG, err)
+    except KeyboardInterrupt:  # Ctrl-C in minutes of explaining: one line, not a traceback
+        return fail(PROG, "interrupted; stats.json is written only once every seed is done", status=130)
     print(written)
     return 0
 

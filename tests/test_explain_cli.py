@@ -357,6 +357,20 @@ def test_stats_refuses_what_it_cannot_take_in_one_line(cli, xdsac_run, tmp_path,
     assert not out.exists()
 
 
+def test_stats_interrupted_says_so_in_one_line(cli, xdsac_run, tmp_path, capsys, monkeypatch):
+    import xrl_jax.explain.run_statistics as run_statistics
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_statistics, "write_statistics", interrupted)
+    status, _, err = call(cli, capsys, "--stats", xdsac_run, "--out", tmp_path / "s")
+    assert status == 130 and err.strip().splitlines() == [
+        "explain.py: error: interrupted; stats.json is written only once every seed is done"
+    ]
+    assert not (tmp_path / "s").exists()
+
+
 def check_stats(folder: Path, kinds: list[str], seeds: int = 1) -> dict:
     summary = json.loads((folder / "stats.json").read_text())
     assert summary["seeds"] == seeds and summary["kinds"] == kinds
