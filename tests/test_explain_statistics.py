@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from xrl_jax.explain.evaluation_steps import _concatenate
+from xrl_jax.explain.evaluation_steps import join_steps
 from xrl_jax.explain.statistics import (
     Binned,
     binned_mean,
@@ -196,7 +196,7 @@ def test_racing_steps_place_kind_contact_and_identity_of_cones():
     record.terminated[0, 1] = True
     # Each cone keeps its world place (its identity) while its ego-frame place moves.
     np.testing.assert_allclose(flat["identity"][:, :2], [[[100, 70], [95, 50]]] * 2, atol=1e-9)
-    steps = _concatenate([flat])
+    steps = join_steps([flat])
     np.testing.assert_allclose(steps.time_to_contact[:, :2], [[2.0, np.inf], [1.9, np.inf]])
     change = weight_change(
         steps.weights[:1], steps.identity[:1], steps.weights[1:], steps.identity[1:], steps.identity_tolerance
@@ -252,3 +252,30 @@ def test_intersection_steps_name_each_car_by_how_its_approach_meets_the_own():
     # Slot 2's car collides at step 0 (the record is hand-built: it goes on acting); slot 3's car
     # leaves the road at step 0 and a new car takes the slot at step 1, whose end is not its own.
     np.testing.assert_array_equal(flat["steps_to_early_end"], [np.inf] * 4 + [0, np.inf, 0, np.inf])
+
+
+def test_a_figure_interrupted_before_its_rename_leaves_the_previous_one(tmp_path, monkeypatch):
+    """kill -9 mid-write: the figure goes to a temporary file first, so the old one stays whole."""
+    import os
+
+    from xrl_jax.explain import statistics_figures
+
+    point = {"estimate": 0.0, "low": 0.0, "high": 0.0}
+    deletion = {
+        "ks": [0, 1],
+        "metrics": ["tv"],
+        "rankers": {"random": {"tv": {"over_seeds": [point, point]}}},
+    }
+    path = tmp_path / "deletion.png"
+    path.write_bytes(b"the previous figure")
+
+    def killed(*args):
+        raise KeyboardInterrupt  # the process dies between writing and renaming
+
+    monkeypatch.setattr(os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        statistics_figures.draw_deletion(deletion, path)
+    assert path.read_bytes() == b"the previous figure"
+    monkeypatch.undo()
+    statistics_figures.draw_deletion(deletion, path)
+    assert path.read_bytes().startswith(b"\x89PNG")

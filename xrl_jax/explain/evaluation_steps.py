@@ -11,6 +11,7 @@ one step to the next (a cone's world place, a centre-line point's rank ahead, a 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -95,22 +96,32 @@ def _with_neutral(arrays: dict, neutral: bool, shape_prefix: tuple[int, ...], ki
 # ------------------------------------------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=4)  # one compilation per (env, agent, length): every seed reuses it
+def _track_batch_rollout(env, agent, max_steps: int):
+    """``run(key, params, tracks, tables, agent_state)``, jitted: one episode per track of the
+    batch (``tracks`` leaves (B, 1, ...): a bank of one track each, as the evaluation gives them)."""
+    rollout = make_episode_rollout(env, agent, max_steps)
+
+    def run(key, params, tracks, tables, agent_state):
+        def one(track, table):
+            changes = {"tracks": track} if table is None else {"tracks": track, "tables": table}
+            return rollout(key, params.replace(**changes), agent_state)
+
+        return jax.vmap(one, in_axes=(0, None if tables is None else 0))(tracks, tables)
+
+    return jax.jit(run)
+
+
 def _racing_rollouts(trainer, agent_state, episodes: int, key, batch: int = 20):
     """The evaluation tracks driven again with explanations, ``batch`` tracks at a time (host copies)."""
     params = trainer.eval_params
-    rollout = make_episode_rollout(trainer.env, trainer.agent, int(params.max_steps) + 1)
+    run = _track_batch_rollout(trainer.env, trainer.agent, int(params.max_steps) + 1)
     tables = getattr(params, "tables", None)
-
-    def one(track, table):
-        changes = {"tracks": track} if table is None else {"tracks": track, "tables": table}
-        return rollout(key, params.replace(**changes), agent_state)
-
-    run = jax.jit(jax.vmap(one, in_axes=(0, None if tables is None else 0)))
     for start in range(0, episodes, batch):
         part = slice(start, min(start + batch, episodes))
         tracks = jax.tree.map(lambda leaf, part=part: leaf[part, None], params.tracks)
         table = None if tables is None else jax.tree.map(lambda leaf, part=part: leaf[part, None], tables)
-        yield jax.device_get(run(tracks, table))
+        yield jax.device_get(run(key, params, tracks, table, agent_state))
 
 
 def _racing_steps(env_name: str, trainer, record) -> dict:
@@ -257,7 +268,8 @@ def _intersection_rollouts(trainer, agent_state, episodes: int, key):
 # ------------------------------------------------------------------------------------------------
 
 
-def _concatenate(parts: list[dict]) -> ExplainedSteps:
+def join_steps(parts: list[dict]) -> ExplainedSteps:
+    """Batches of flat step arrays (the ``_*_steps`` adaptors' dicts) as one :class:`ExplainedSteps`."""
     fields = [k for k in parts[0] if k not in ("obs", "kinds")]
     joined = {k: np.concatenate([p[k] for p in parts]) for k in fields}
     obs = jax.tree.map(lambda *leaves: np.concatenate(leaves), *[p["obs"] for p in parts])
@@ -277,7 +289,7 @@ def explained_steps(cfg, trainer, agent_state, key=None) -> ExplainedSteps:
     else:
         records = _racing_rollouts(trainer, agent_state, cfg.eval_episodes, key)
         parts = [_racing_steps(cfg.env_name, trainer, record) for record in records]
-    return _concatenate(parts)
+    return join_steps(parts)
 
 
 def agreement_sample(steps: ExplainedSteps, rng: np.random.Generator):

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from xrl_jax.explain.faithfulness import RANKERS, DeletingAgent, policy_change_curve
-from xrl_jax.stats import iqm, stratified_bootstrap_ci
+from xrl_jax.explain.statistics import interval_over_seeds
 
 DELETION_KS = (0, 1, 2, 3, 5, 8)  # objects removed per observation (at most all but one)
 MIXTURE_RANKERS = ("weight", "random")
@@ -32,20 +32,25 @@ def rankers_of(agent) -> tuple[str, ...]:
     return MIXTURE_RANKERS if agent.config.is_mixture else BASELINE_RANKERS
 
 
-def _policy_change(agent, agent_state, sample, ranker: str, ks, key) -> np.ndarray:
-    """(len(ks),) the mean TV over up to ``POLICY_STATES`` observations of ``sample``."""
+def _policy_change_program(agent, ranker: str, ks):
+    """``curve(agent_state, obs, key) -> (len(ks),)`` jitted once per ranker: the mean TV over a
+    chunk of observations."""
     set_key = agent.obs_shape.set_key
-    curve = jax.jit(
+    return jax.jit(
         lambda state, obs, key: policy_change_curve(
             agent, state, obs, set_key, RANKERS[ranker], ks, key, TV_SAMPLES
         ).mean(-1)
     )
+
+
+def _policy_change(curve, agent_state, sample, key) -> np.ndarray:
+    """(len(ks),) the mean TV over up to ``POLICY_STATES`` observations of ``sample``, in chunks."""
     count = min(POLICY_STATES, len(jax.tree.leaves(sample)[0]))
-    total = np.zeros(len(ks))
+    total = 0.0
     for start in range(0, count, STATE_CHUNK):
         stop = min(start + STATE_CHUNK, count)
         obs = jax.tree.map(lambda leaf, a=start, b=stop: jnp.asarray(leaf[a:b]), sample)
-        total += np.asarray(curve(agent_state, obs, jax.random.fold_in(key, start))) * (stop - start)
+        total = total + np.asarray(curve(agent_state, obs, jax.random.fold_in(key, start))) * (stop - start)
     return total / count
 
 
@@ -62,23 +67,6 @@ def _evaluations(cfg, trainer, ranker: str, ks, episodes: int):
     return jax.jit(lambda key, state: jax.vmap(lambda k: evaluate(key, (state, k)))(counts))
 
 
-def _interval(values) -> dict:
-    values = np.asarray(values, np.float64)
-    if values.size < 2:
-        return {"estimate": float(values.mean()), "low": float(values.min()), "high": float(values.max())}
-    ci = stratified_bootstrap_ci(values)
-    return {"estimate": iqm(values), "low": ci.low, "high": ci.high}
-
-
-def _mean_interval(values) -> dict:
-    """The mean over seeds with its percentile bootstrap interval (for paired differences)."""
-    values = np.asarray(values, np.float64)
-    if values.size < 2:
-        return {"estimate": float(values.mean()), "low": float(values.min()), "high": float(values.max())}
-    ci = stratified_bootstrap_ci(values, statistic=np.mean)
-    return {"estimate": float(values.mean()), "low": ci.low, "high": ci.high}
-
-
 def deletion_curves(cfg, trainer, agent_states, samples, episodes: int, key, note=lambda m: None) -> dict:
     """The deletion curves of every seed (``agent_states`` stacked; ``samples``: each seed's
     observations, :func:`~xrl_jax.explain.evaluation_steps.agreement_sample`), evaluated on the first
@@ -93,10 +81,11 @@ def deletion_curves(cfg, trainer, agent_states, samples, episodes: int, key, not
     per_seed = {r: {"tv": [], **{m: [] for m in metrics}} for r in rankers_of(agent)}
     for ranker, rows in per_seed.items():
         evaluate = _evaluations(cfg, trainer, ranker, ks, episodes)
+        curve = _policy_change_program(agent, ranker, ks)
         for seed in range(seeds):
             state = jax.tree.map(lambda leaf, s=seed: leaf[s], agent_states)
             seed_key = jax.random.fold_in(key, seed)
-            rows["tv"].append(_policy_change(agent, state, samples[seed], ranker, ks, seed_key))
+            rows["tv"].append(_policy_change(curve, state, samples[seed], seed_key))
             results = jax.device_get(evaluate(seed_key, state))
             for metric in metrics:
                 rows[metric].append(np.asarray(results[metric], np.float64).mean(-1))
@@ -108,15 +97,16 @@ def deletion_curves(cfg, trainer, agent_states, samples, episodes: int, key, not
             matrix = np.stack(values)  # (seeds, len(ks))
             curves[ranker][name] = {
                 "per_seed": matrix.tolist(),
-                "over_seeds": [_interval(matrix[:, j]) for j in range(len(ks))],
+                "over_seeds": [interval_over_seeds(matrix[:, j]) for j in range(len(ks))],
             }
     differences = {}
     for ranker, rows in per_seed.items():
         if ranker == "random":
             continue
         differences[ranker] = {
-            name: _mean_interval(
-                np.stack(rows[name])[:, 1:].mean(-1) - np.stack(per_seed["random"][name])[:, 1:].mean(-1)
+            name: interval_over_seeds(
+                np.stack(rows[name])[:, 1:].mean(-1) - np.stack(per_seed["random"][name])[:, 1:].mean(-1),
+                statistic=np.mean,
             )
             for name in rows
         }

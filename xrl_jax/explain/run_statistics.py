@@ -23,12 +23,12 @@ from xrl_jax.explain.statistics import (
     binned_mean,
     binned_weight,
     explanation_size,
+    interval_over_seeds,
     seed_agreement,
     weight_by_kind,
     weight_change,
     weight_map,
 )
-from xrl_jax.stats import iqm, stratified_bootstrap_ci
 
 SIZE_SHARE = 0.9  # an explanation's size: the fewest objects carrying 90 % of the weight
 DISTANCE_EDGES = tuple(float(d) for d in range(0, 52, 4))  # m from the ego's centre
@@ -112,17 +112,6 @@ def agreement(agent, agent_states, samples: list[Any]):
     return similarity, same_top
 
 
-def _interval(values) -> dict[str, float]:
-    values = np.asarray(values, np.float64)
-    finite = values[np.isfinite(values)]
-    if finite.size == 0:
-        return {"estimate": math.nan, "low": math.nan, "high": math.nan, "seeds": 0}
-    ci = stratified_bootstrap_ci(finite) if finite.size > 1 else None
-    estimate = iqm(finite)
-    low, high = (ci.low, ci.high) if ci else (estimate, estimate)
-    return {"estimate": estimate, "low": low, "high": high, "seeds": int(finite.size)}
-
-
 def summarise(per_seed: list[dict], kinds: tuple[str, ...], x_edges, y_edges, similarity, same_top) -> dict:
     """The JSON summary: each statistic per seed and as IQM [95 % CI] over seeds."""
     steps = np.array([s["steps"] for s in per_seed], np.float64)
@@ -135,7 +124,7 @@ def summarise(per_seed: list[dict], kinds: tuple[str, ...], x_edges, y_edges, si
             return np.stack([s[name].mean_weight() for s in per_seed])
 
     def columns(matrix):
-        return [_interval(matrix[:, j]) for j in range(matrix.shape[1])]
+        return [interval_over_seeds(matrix[:, j]) for j in range(matrix.shape[1])]
 
     pooled_map = sum((s["map"] for s in per_seed), Binned(0.0, 0))
     sizes = [s["size"] for s in per_seed]
@@ -172,18 +161,18 @@ def summarise(per_seed: list[dict], kinds: tuple[str, ...], x_edges, y_edges, si
         },
         "size": {
             "share": SIZE_SHARE,
-            "mean": _interval([np.mean(s) for s in sizes]),
+            "mean": interval_over_seeds([np.mean(s) for s in sizes]),
             "median_per_seed": [float(np.median(s)) for s in sizes],
-            "objects_present": _interval([np.mean(s["present"]) for s in per_seed]),
+            "objects_present": interval_over_seeds([np.mean(s["present"]) for s in per_seed]),
             "speed_edges": list(SPEED_EDGES),
             "by_speed": columns(speed_means),
             "steps_by_speed": speed_counts.astype(int).tolist(),
         },
         "situations": _summarise_situations(per_seed),
         "stability": {
-            "mean_change": _interval([np.mean(s["change"]) for s in per_seed]),
-            "median_change": _interval([np.median(s["change"]) for s in per_seed]),
-            "share_above_half": _interval([np.mean(s["change"] > 0.5) for s in per_seed]),
+            "mean_change": interval_over_seeds([np.mean(s["change"]) for s in per_seed]),
+            "median_change": interval_over_seeds([np.median(s["change"]) for s in per_seed]),
+            "share_above_half": interval_over_seeds([np.mean(s["change"] > 0.5) for s in per_seed]),
         },
         "agreement": {
             "similarity": similarity.tolist(),
@@ -208,9 +197,9 @@ def _summarise_situations(per_seed: list[dict]) -> dict:
             kind = np.stack([p["kind"].mass / p["steps"] for p in met]) if met else np.zeros((0, 0))
             summary[name] = {
                 "steps": [p["steps"] for p in parts],
-                "kind_share": [_interval(kind[:, j]) for j in range(kind.shape[1])],
-                "size": _interval([np.mean(p["size"]) for p in met]),
-                "weighted_distance": _interval(distance_per_weight),
+                "kind_share": [interval_over_seeds(kind[:, j]) for j in range(kind.shape[1])],
+                "size": interval_over_seeds([np.mean(p["size"]) for p in met]),
+                "weighted_distance": interval_over_seeds(distance_per_weight),
             }
     return summary
 

@@ -18,9 +18,12 @@ run-level code (:mod:`xrl_jax.explain.run_statistics`) turns observations into t
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+from xrl_jax.stats import iqm, stratified_bootstrap_ci
 
 
 @dataclass(frozen=True)
@@ -169,3 +172,17 @@ def seed_agreement(weights) -> tuple[np.ndarray, np.ndarray]:
             similarity[s, r] = similarity[r, s] = 1.0 - 0.5 * np.abs(weights[s] - weights[r]).sum(-1).mean()
     same_top = (top[:, None] == top[None, :]).mean(-1)
     return similarity, same_top
+
+
+def interval_over_seeds(values, statistic: Callable[[np.ndarray], float] = iqm) -> dict[str, float]:
+    """``statistic`` (default the IQM) of the seeds' finite values with its 95 % percentile bootstrap
+    interval over seeds, as a JSON-ready dict; one seed gives its value as both ends, none NaN."""
+    values = np.asarray(values, np.float64).ravel()
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return {"estimate": float("nan"), "low": float("nan"), "high": float("nan"), "seeds": 0}
+    estimate = float(statistic(finite))
+    if finite.size == 1:
+        return {"estimate": estimate, "low": estimate, "high": estimate, "seeds": 1}
+    ci = stratified_bootstrap_ci(finite, statistic=statistic)
+    return {"estimate": estimate, "low": ci.low, "high": ci.high, "seeds": int(finite.size)}

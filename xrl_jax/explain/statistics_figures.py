@@ -7,6 +7,7 @@ over seeds. Reads only the summary that :mod:`xrl_jax.explain.run_statistics` wr
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -17,13 +18,26 @@ def _centres(edges) -> np.ndarray:
     return 0.5 * (edges[:-1] + edges[1:])
 
 
-def _band(ax, x, intervals, colour: str, label: str | None = None) -> None:
+def _band(ax, x, intervals, colour: str, label: str | None = None, style: str = "-", alpha: float = 0.25):
     """IQM over seeds as a line, its 95 % interval as a band (bins without data left out)."""
     estimate = np.array([i["estimate"] for i in intervals], np.float64)
     low = np.array([i["low"] for i in intervals], np.float64)
     high = np.array([i["high"] for i in intervals], np.float64)
-    ax.plot(x, estimate, color=colour, marker="o", markersize=3, label=label)
-    ax.fill_between(x, low, high, color=colour, alpha=0.25, linewidth=0)
+    ax.plot(x, estimate, color=colour, linestyle=style, marker="o", markersize=3, label=label)
+    ax.fill_between(x, low, high, color=colour, alpha=alpha, linewidth=0)
+
+
+def _save(fig, path: str | Path) -> Path:
+    """The figure written whole or not at all: into a temporary file beside it, then renamed (a run
+    killed mid-write leaves the previous figure, never a truncated one)."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    partial = path.with_name(f".{path.name}.partial")
+    fig.savefig(partial, dpi=110, format="png")
+    plt.close(fig)
+    os.replace(partial, path)
+    return path
 
 
 def _kind_bars(ax, summary: dict, colour: str) -> None:
@@ -121,10 +135,7 @@ def draw_statistics(summary: dict, path: str | Path, title: str = "") -> Path:
     )
     fig.suptitle(title)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 RANKER_STYLES = {  # the explanation's own order solid, the post-hoc ones dashed, the control grey
@@ -157,19 +168,11 @@ def draw_deletion(deletion: dict, path: str | Path, title: str = "") -> Path:
     for ax, metric in zip(axes.flat, metrics, strict=True):
         for ranker, curves in deletion["rankers"].items():
             colour, style, label = RANKER_STYLES[ranker]
-            intervals = curves[metric]["over_seeds"]
-            estimate = np.array([i["estimate"] for i in intervals], np.float64)
-            ax.plot(ks, estimate, color=colour, linestyle=style, marker="o", markersize=3, label=label)
-            low = np.array([i["low"] for i in intervals], np.float64)
-            high = np.array([i["high"] for i in intervals], np.float64)
-            ax.fill_between(ks, low, high, color=colour, alpha=0.2, linewidth=0)
+            _band(ax, ks, curves[metric]["over_seeds"], colour, label, style, alpha=0.2)
         ax.set(xlabel="objects deleted from every observation", ylabel=METRIC_LABELS[metric])
         ax.set_xticks(ks)
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), frameon=False)
     fig.suptitle(title)
     fig.tight_layout(rect=(0, 0.06 / rows, 1, 1))
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
