@@ -114,6 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
     rj_parser.add_argument("--minibatches", type=positive_int, default=8)
     rj_parser.add_argument("--width", type=positive_int, default=64)
     rj_parser.add_argument("--depth", type=positive_int, default=2)
+    rj_parser.add_argument(
+        "--truncation", default="bootstrap", choices=["bootstrap", "terminal"],
+        help="how our side values the 60 s time limit: bootstrap (ours) or terminal (rejax's reading)",
+    )  # fmt: skip
     tk_parser = sub.add_parser("tracks", help="fresh-track refill cost per track, FLOPs per track")
     tk_parser.add_argument("--seeds", nargs="+", type=positive_int, default=[1, 4, 20])
     tk_parser.add_argument(
@@ -288,7 +292,7 @@ def results(parser: argparse.ArgumentParser, args: argparse.Namespace):
     if args.command == "rejax":
         return B.ppo_against_rejax(
             args.seeds, args.steps, args.envs, args.rollout_steps, args.epochs, args.minibatches,
-            args.width, args.depth,
+            args.width, args.depth, truncation=args.truncation,
         )  # fmt: skip
     if args.command == "profile":
         return B.bench_profile(

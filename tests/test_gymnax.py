@@ -195,6 +195,10 @@ def test_the_rejax_comparison_gives_both_ppos_the_same_settings():
     assert a.actor_lr == a.critic_lr and a.lr_decay_updates == 0  # rejax: one constant rate
     assert algo.actor.hidden_layer_sizes == (32, 32) == (a.actor_width,) * a.actor_depth
     assert (a.critic_width, a.critic_depth, a.feature_extractor, a.pe_freqs) == (32, 2, "flat_pe", 0)
+    assert a.truncation == "bootstrap"  # ours by default; the ablation takes rejax's reading
+    ablation = comparison_config(seeds=2, total_steps=8192, num_envs=16, rollout_steps=128, epochs=3,
+                                 minibatches=4, width=32, depth=2, truncation="terminal")  # fmt: skip
+    assert ablation.agent.truncation == "terminal"
 
 
 @pytest.mark.slow  # two PPOs trained (8,192 steps each) and evaluated on 5 held-out tracks
@@ -205,6 +209,7 @@ def test_the_rejax_comparison_reports_both_sides():
     report = ppo_against_rejax(seeds=2, total_steps=8192, num_envs=16, rollout_steps=128, epochs=2,
                                minibatches=4, width=32, depth=2, eval_episodes=5)  # fmt: skip
     assert report["settings"]["eval_episodes"] == 5
+    assert report["settings"]["xrl_jax_truncation"] == "bootstrap"
     for side in ("xrl_jax", "rejax"):
         assert len(report[side]["returns"]) == 2 and np.all(np.isfinite(report[side]["returns"]))
         assert report[side]["env_steps_per_s"] > 0

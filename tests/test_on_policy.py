@@ -1,7 +1,10 @@
 """One on-policy iteration (xrl_jax.train.on_policy) on the fast env of tests/fast_env.py: the rollout's
 time-major layout, the bootstrap value of a truncated step taken at its ending observation, the
-advantages by GAE, the whole iteration under vmap over members, and agent slots that sit steps out
-(the Intersection's): masked out of the losses, ending their slot's GAE chain."""
+advantages by GAE (and the truncation=terminal ablation's), the whole iteration under vmap over
+members, and agent slots that sit steps out (the Intersection's): masked out of the losses, ending
+their slot's GAE chain."""
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -19,9 +22,10 @@ EXAMPLE = {"state": jnp.zeros(2), "dots_set": jnp.zeros((4, 3))}
 ENVS, STEPS = 4, 2 * MAX_STEPS  # every env truncates at steps 7 and 15
 
 
-def setup(algo="xdppo"):
+def setup(algo="xdppo", truncation="drop"):
     config = AgentConfig(algo=algo, actor_width=32, critic_width=32, fe_width=32, fourier_scale=None,
-                         gamma=0.9, clip_norm=0.5, ppo_epochs=2, ppo_minibatches=4)  # fmt: skip
+                         gamma=0.9, clip_norm=0.5, ppo_epochs=2, ppo_minibatches=4,
+                         truncation=truncation)  # fmt: skip
     return make_ppo_agent(config, EXAMPLE, 3), vmap_env(FastEnv(), ENVS)
 
 
@@ -124,6 +128,50 @@ def test_an_idle_agent_slot_is_masked_out_and_ends_its_slots_advantage_chain():
     # float32 sums of a few terms of size ~1: a few ulps.
     np.testing.assert_allclose(advantage[:, 0], expected_slot0, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(advantage[[0, 1, 3], 1], expected_slot1, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("truncation", ["bootstrap", "terminal"])
+def test_truncation_terminal_values_a_truncated_step_as_an_end(truncation):
+    """One env, 3 steps, truncated at step 1. By hand: bootstrap (the family's own) values step 1 from
+    its ending observation, terminal (the ablation, PureJaxRL's and rejax's reading) from nothing; in
+    both, nothing flows from step 2 (the next episode) back into step 1."""
+    gamma, lam = 0.9, 0.8
+    reward = np.array([[0.3], [0.5], [0.7]], np.float32)
+    value = np.array([[1.0], [1.2], [0.4]], np.float32)
+    next_value = np.array([[1.1], [2.0], [0.6]], np.float32)
+    truncated = np.array([[False], [True], [False]])
+    record = jax.vmap(on_policy.ONE_AGENT_PER_ENV.read_step)(
+        jnp.asarray(reward), jnp.zeros((3, 1), bool), jnp.asarray(truncated), {}
+    )
+    zeros = jnp.zeros((3, 1))
+    rollout = on_policy.Rollout({"state": zeros}, zeros.astype(jnp.int32), zeros, jnp.asarray(value),
+                                jnp.asarray(next_value), record, {})  # fmt: skip
+    batch = on_policy.rollout_batch(rollout, gamma, lam, truncation_is_terminal=truncation == "terminal")
+    r, v, nv = reward[:, 0], value[:, 0], next_value[:, 0]
+    bootstrap = gamma * nv[1] if truncation == "bootstrap" else 0.0
+    a1 = r[1] + bootstrap - v[1]
+    expected = [r[0] + gamma * nv[0] - v[0] + gamma * lam * a1, a1, r[2] + gamma * nv[2] - v[2]]
+    # float32 sums of a few terms of size ~1: a few ulps.
+    np.testing.assert_allclose(np.asarray(batch["advantage"]), expected, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(batch["target"]), np.asarray(expected) + v, rtol=1e-6, atol=1e-6)
+
+
+def test_the_iteration_takes_the_truncation_mode_from_the_agents_config(monkeypatch):
+    seen = []
+    real = on_policy.rollout_batch
+
+    def spy(*args):
+        seen.append(args[-1])
+        return real(*args)
+
+    monkeypatch.setattr(on_policy, "rollout_batch", spy)
+    for truncation in ("drop", "terminal"):
+        agent, venv = setup(truncation=truncation)
+        state = agent.init(jax.random.PRNGKey(0), EXAMPLE)
+        obs, venv_state = venv.reset(jax.random.PRNGKey(1), None)
+        one = functools.partial(on_policy.iteration, agent, venv, None, steps=2)
+        jax.eval_shape(one, state, venv_state, obs, jax.random.PRNGKey(2))  # traces it, computes nothing
+    assert seen == [False, True]
 
 
 def test_masked_rows_do_not_move_the_update():

@@ -231,7 +231,8 @@ def make_ppo_agent(config: AgentConfig, obs_example: Mapping[str, Array], action
             f"make_ppo_agent builds the on-policy agents; {config.algo!r} is off-policy (make_agent)"
         )
     obs_shape = observation_shape(obs_example)
-    twin = config.replace(algo=ACTOR_TWIN[config.algo])
+    # The SAC-family twin only shapes the networks; the rollout's truncation mode is the on-policy one's.
+    twin = config.replace(algo=ACTOR_TWIN[config.algo], truncation="drop")
     networks = make_networks(twin, obs_shape, action_size)
     extractor = make_extractor(config, set_packing(config))
     value_network = ValueNetwork(extractor, (config.critic_width,) * config.critic_depth)

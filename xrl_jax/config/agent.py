@@ -64,7 +64,12 @@ class AgentConfig:
     clip_norm: float | None = setting(None, "global gradient-norm clipping; none = off")
     auto_alpha: bool = setting(True, "learn the entropy coefficient α")
     epsilon_random: float | None = setting(None, "random-action probability; none = 0.05 discrete, 0")
-    truncation: str = setting("drop", "truncated transitions: drop (paper) | bootstrap")
+    truncation: str = setting(
+        "drop",
+        "truncated transitions: drop (paper) | bootstrap | terminal (on-policy only: the time limit valued "
+        "as an end, as PureJaxRL and rejax take it); the on-policy family keeps every step and bootstraps "
+        "under drop and bootstrap",
+    )
     lr_decay_updates: int = setting(0, "linear decay of the learning rates to zero over this many updates")
     # --- optimisation (traced) ---
     actor_lr: float = setting(1e-4, "actor learning rate")
@@ -169,6 +174,11 @@ def _validate_agent(cfg: AgentConfig) -> None:
             is_int(cfg.weight_depth, 1) and cfg.weight_depth <= cfg.actor_depth,
             f"weight_depth (φ_d) must lie in 1..actor_depth={cfg.actor_depth}, got {cfg.weight_depth}",
         )
+    check(
+        cfg.truncation != "terminal" or cfg.is_on_policy,
+        f"truncation=terminal applies to the on-policy family (ppo, dppo, xppo, xdppo); {cfg.algo} drops "
+        "or bootstraps a truncated transition",
+    )
     check(
         not cfg.neutral_object or cfg.is_mixture,
         f"neutral_object only applies to the mixture actors (xsac, xdsac); {cfg.algo} has no object slots",

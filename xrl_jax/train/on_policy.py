@@ -6,7 +6,8 @@ it over members, scan it over iterations (PureJaxRL's shape).
 The value a step bootstraps from is that of its own next observation, the ending one where an
 episode ended (``info["final_obs"]`` of an auto-resetting vector env), not the next episode's first:
 so a truncated step is valued from where the car was, and GAE (``xrl_jax.losses.gae``) neither
-bootstraps a terminated step nor carries advantages across an episode's end.
+bootstraps a terminated step nor carries advantages across an episode's end. ``truncation=terminal``
+(an ablation) values a truncated step as a terminated one, as PureJaxRL and rejax do.
 
 On the Intersection every agent slot of every env is an actor of the one agent (parameter sharing);
 the scenario kind reads which slots acted (:meth:`~xrl_jax.train.kinds.base.ScenarioKind.read_step`),
@@ -77,14 +78,17 @@ def collect_rollout(agent, venv, env_params, agent_state, venv_state, obs, key, 
     return venv_state, obs, rollout
 
 
-def rollout_batch(rollout: Rollout, gamma, gae_lambda, masked: bool = False) -> dict[str, Any]:
+def rollout_batch(rollout: Rollout, gamma, gae_lambda, masked: bool = False,
+                  truncation_is_terminal: bool = False) -> dict[str, Any]:  # fmt: skip
     """The agent's update batch: every step of ``rollout`` flattened over (T, actors...), with its GAE
     advantage and value target (``xrl_jax.ppo.ROLLOUT_KEYS``). With ``masked``, the batch's ``mask``
     says which steps an actor took (an empty agent slot's are weighed out of the losses); such a step
-    also ends the slot's GAE chain, so nothing flows across the gap to the next vehicle in the slot."""
+    also ends the slot's GAE chain, so nothing flows across the gap to the next vehicle in the slot.
+    With ``truncation_is_terminal`` a truncated step bootstraps nothing, as a terminated one."""
     record = rollout.record
+    terminated = record.terminated | record.truncated if truncation_is_terminal else record.terminated
     advantage, target = losses.gae(
-        record.reward, rollout.value, rollout.next_value, record.terminated, record.truncated | ~record.acted,
+        record.reward, rollout.value, rollout.next_value, terminated, record.truncated | ~record.acted,
         gamma, gae_lambda,
     )  # fmt: skip
     step_axes = record.reward.ndim  # T and the actor axes
@@ -108,7 +112,8 @@ def iteration(agent, venv, env_params, agent_state, venv_state, obs, key, steps:
         agent, venv, env_params, agent_state, venv_state, obs, rollout_key, steps, kind.read_step
     )
     hp = agent_state.hparams
-    batch = rollout_batch(rollout, hp.gamma, hp.gae_lambda, kind.idle_actors)
+    terminal = agent.config.truncation == "terminal"
+    batch = rollout_batch(rollout, hp.gamma, hp.gae_lambda, kind.idle_actors, terminal)
     agent_state, metrics = agent.update(update_key, agent_state, batch)
     return agent_state, venv_state, obs, rollout, metrics
 
