@@ -255,7 +255,7 @@ def ending_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
     time limit, idled out or sent an invalid action, and the distance driven along the track at the
     end (m, ``avg_end_*``, :func:`xrl_jax.evaluation.summarize_episodes`); on the Intersection the
     cars per episode that completed their trip, left the road or collided. Empty where none does."""
-    counts = env.startswith("intersection")  # cars per episode, not shares of the episodes
+    counts = scenario_kind(env).name == "multi_agent"  # cars per episode, not shares of the episodes
     columns = INTERSECTION_ENDINGS if counts else RACING_ENDINGS
     rows = []
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
@@ -380,7 +380,7 @@ def _write_report(
         lines += [markdown_table(rows), ""]
         endings = ending_rows(runs, env)
         if endings:
-            unit = "cars per episode" if env.startswith("intersection") else "share of episodes"
+            unit = "cars per episode" if scenario_kind(env).name == "multi_agent" else "share of episodes"
             lines += [f"How the final evaluation's episodes end ({unit}; mean over seeds; from runs whose "
                       "evaluations record it):", "", markdown_table(endings), ""]  # fmt: skip
         figure = env_figure(runs, env, references)

@@ -283,7 +283,9 @@ def explained_steps(cfg, trainer, agent_state, key=None) -> ExplainedSteps:
     episodes (every car the agent). ``key`` feeds the policy's own randomness (XSAC samples).
     """
     key = jax.random.PRNGKey(0) if key is None else key
-    if cfg.env_name.startswith("intersection"):
+    from xrl_jax.train import scenario_kind
+
+    if scenario_kind(cfg).name == "multi_agent":
         records = _intersection_rollouts(trainer, agent_state, cfg.eval_episodes, key)
         parts = [_intersection_steps(record) for record in records]
     else:
