@@ -118,6 +118,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--truncation", default="bootstrap", choices=["bootstrap", "terminal"],
         help="how our side values the 60 s time limit: bootstrap (ours) or terminal (rejax's reading)",
     )  # fmt: skip
+    rj_parser.add_argument(
+        "--rejax-actor", default="clipped", choices=["clipped", "squashed", "squashed_state_std"],
+        help="rejax's side: its own Gaussian (clipped to the box), sampled before a tanh the env applies "
+        "(squashed), and with log sigma a head of the features as ours (squashed_state_std)",
+    )  # fmt: skip
     tk_parser = sub.add_parser("tracks", help="fresh-track refill cost per track, FLOPs per track")
     tk_parser.add_argument("--seeds", nargs="+", type=positive_int, default=[1, 4, 20])
     tk_parser.add_argument(
@@ -292,7 +297,7 @@ def results(parser: argparse.ArgumentParser, args: argparse.Namespace):
     if args.command == "rejax":
         return B.ppo_against_rejax(
             args.seeds, args.steps, args.envs, args.rollout_steps, args.epochs, args.minibatches,
-            args.width, args.depth, truncation=args.truncation,
+            args.width, args.depth, truncation=args.truncation, rejax_actor=args.rejax_actor,
         )  # fmt: skip
     if args.command == "profile":
         return B.bench_profile(

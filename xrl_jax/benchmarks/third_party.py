@@ -14,6 +14,12 @@ Gaussian with a state-dependent one; rejax treats a truncated step as terminal, 
 from its ending observation (``truncation="terminal"`` gives ours rejax's reading: the ablation of
 ``bench.py rejax --truncation terminal``). Both train on a fixed bank of 128 tracks (rejax on
 envs.make's default, ours on its trainer's bank of that size).
+
+``rejax_actor`` gives rejax's side ours piece by piece (the ablation of ``bench.py rejax
+--rejax-actor``): ``squashed`` samples rejax's Gaussian in the unbounded space and the env applies
+tanh (the ratio taken there, as ours takes it); ``squashed_state_std`` also makes log σ a Dense head
+of the features, clipped to SAC's bounds, as our squashed Gaussian has it. The entropy bonus stays
+rejax's: the Gaussian's closed form before the squash.
 """
 
 from __future__ import annotations
@@ -29,7 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from xrl_jax import stats
-from xrl_jax.config import TrainConfig, resolve_config
+from xrl_jax.config import LOG_STD_MAX, SAC_LOG_STD_MIN, TrainConfig, resolve_config
+
+# rejax's own actor, then ours piece by piece (the module docstring).
+REJAX_ACTORS = ("clipped", "squashed", "squashed_state_std")
 
 
 def comparison_config(seeds: int, total_steps: int, num_envs: int, rollout_steps: int, epochs: int,
@@ -71,9 +80,50 @@ def _train_ours(cfg: TrainConfig, folder: Path) -> tuple[np.ndarray, float]:
     return returns, steps / sum(seconds)
 
 
-def make_rejax_ppo(cfg: TrainConfig):
+def _squashing_env(env):
+    """``env`` (gymnax's older step API) taking unbounded actions and applying tanh to them: rejax's
+    clip to the action box then never acts, and the squash is the env's."""
+    from gymnax.environments import spaces
+
+    from envs.gymnax import LegacyStepAPI
+
+    class TanhActions(LegacyStepAPI):
+        def action_space(self, params=None):
+            box = self._env.action_space(params)
+            return spaces.Box(-jnp.inf, jnp.inf, box.shape, box.dtype)
+
+        def step(self, key, state, action, params=None):
+            return super().step(key, state, jnp.tanh(action), params)
+
+    return TanhActions(env)
+
+
+def _state_std_actor(actor):
+    """rejax's Gaussian ``actor`` with log σ a Dense head of its features, clipped to SAC's bounds."""
+    import distrax
+    import flax.linen as nn
+    from rejax.networks import MLP, GaussianPolicy
+
+    class StateStdGaussian(GaussianPolicy):
+        def setup(self):
+            self.features = MLP(self.hidden_layer_sizes, self.activation)
+            self.action_mean = nn.Dense(self.action_dim)
+            self.action_log_std = nn.Dense(self.action_dim)
+
+        def _action_dist(self, obs):
+            features = self.features(obs)
+            log_std = jnp.clip(self.action_log_std(features), SAC_LOG_STD_MIN, LOG_STD_MAX)
+            return distrax.MultivariateNormalDiag(loc=self.action_mean(features), scale_diag=jnp.exp(log_std))
+
+    return StateStdGaussian(actor.action_dim, actor.action_range, actor.hidden_layer_sizes, actor.activation)
+
+
+def make_rejax_ppo(cfg: TrainConfig, rejax_actor: str = "clipped"):
     """rejax's PPO with ``cfg``'s shared settings on Tracking through :mod:`envs.gymnax`, evaluating
-    nothing while it trains (ours evaluates outside its timed chunks too)."""
+    nothing while it trains (ours evaluates outside its timed chunks too); ``rejax_actor`` one of
+    :data:`REJAX_ACTORS`."""
+    if rejax_actor not in REJAX_ACTORS:
+        raise ValueError(f"rejax_actor must be one of {', '.join(REJAX_ACTORS)}, got {rejax_actor!r}")
     try:
         import rejax
     except ImportError:
@@ -82,21 +132,26 @@ def make_rejax_ppo(cfg: TrainConfig):
 
     a = cfg.agent
     env, params = carenv_gymnax.make("tracking", flat_obs=True)
+    squashed = rejax_actor != "clipped"
     algo = rejax.PPO.create(
-        env=carenv_gymnax.legacy_step_api(env), env_params=params, total_timesteps=cfg.total_steps,
+        env=_squashing_env(env) if squashed else carenv_gymnax.legacy_step_api(env), env_params=params,
+        total_timesteps=cfg.total_steps,
         num_envs=cfg.num_envs, num_steps=a.rollout_steps, num_epochs=a.ppo_epochs,
         num_minibatches=a.ppo_minibatches, learning_rate=a.actor_lr, gamma=a.gamma,
         gae_lambda=a.gae_lambda, clip_eps=a.clip_eps, ent_coef=a.ent_coef, max_grad_norm=a.clip_norm,
         eval_freq=cfg.total_steps, skip_initial_evaluation=True,
         agent_kwargs={"hidden_layer_sizes": (a.actor_width,) * a.actor_depth, "activation": "relu"},
     )  # fmt: skip
-    return algo.replace(eval_callback=lambda algo, ts, rng: jnp.zeros(()))
+    algo = algo.replace(eval_callback=lambda algo, ts, rng: jnp.zeros(()))
+    if rejax_actor == "squashed_state_std":
+        algo = algo.replace(actor=_state_std_actor(algo.actor))
+    return algo
 
 
-def _train_rejax(cfg: TrainConfig, seed: int) -> tuple[Any, Any, float]:
+def _train_rejax(cfg: TrainConfig, seed: int, rejax_actor: str) -> tuple[Any, Any, float]:
     """(algorithm, trained actor params per member, env steps per second of the compiled training,
     compilation excluded)."""
-    algo = make_rejax_ppo(cfg)
+    algo = make_rejax_ppo(cfg, rejax_actor)
     keys = jax.random.split(jax.random.PRNGKey(seed), cfg.num_seeds)
     compiled = jax.jit(jax.vmap(algo.train)).lower(keys).compile()
     start = time.perf_counter()
@@ -106,8 +161,9 @@ def _train_rejax(cfg: TrainConfig, seed: int) -> tuple[Any, Any, float]:
     return algo, train_state.actor_ts.params, rate
 
 
-def _evaluate_rejax(cfg: TrainConfig, algo, actor_params) -> np.ndarray:
-    """Greedy returns (the clipped mean action) per member on the trainer's held-out tracks."""
+def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, squashed: bool) -> np.ndarray:
+    """Greedy returns (the mean action, clipped or squashed as it trained) per member on the
+    trainer's held-out tracks."""
     from envs.gymnax import flatten_observation
     from xrl_jax.evaluation import make_evaluate_policy
     from xrl_jax.train.kinds import make_envs
@@ -117,7 +173,7 @@ def _evaluate_rejax(cfg: TrainConfig, algo, actor_params) -> np.ndarray:
     def greedy(key, params, obs, env_states, per_episode):
         del key, env_states, per_episode
         mean = algo.actor.apply(params, flatten_observation(obs), method="_action_dist").mean()
-        return jnp.clip(mean, -1.0, 1.0)
+        return jnp.tanh(mean) if squashed else jnp.clip(mean, -1.0, 1.0)
 
     evaluate = make_evaluate_policy(env, eval_params, greedy, cfg.eval_episodes)
     keys = jax.random.split(jax.random.PRNGKey(cfg.eval_track_seed), cfg.num_seeds)
@@ -128,17 +184,19 @@ def _evaluate_rejax(cfg: TrainConfig, algo, actor_params) -> np.ndarray:
 def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: int = 16,
                       rollout_steps: int = 128, epochs: int = 4, minibatches: int = 8, width: int = 64,
                       depth: int = 2, folder: str | None = None, eval_episodes: int = 100,
-                      truncation: str = "bootstrap") -> dict[str, Any]:  # fmt: skip
+                      truncation: str = "bootstrap",
+                      rejax_actor: str = "clipped") -> dict[str, Any]:  # fmt: skip
     """Both PPOs at the settings given, ``seeds`` members each: final greedy returns per seed (over
     ``eval_episodes`` held-out tracks) with their IQM and 95 % interval, P(ours > rejax) with the
     Mann-Whitney test, and env steps per second. ``truncation``: how our side values the 60 s time
-    limit (bootstrap: from the ending observation; terminal: as an end, rejax's reading)."""
+    limit (bootstrap: from the ending observation; terminal: as an end, rejax's reading);
+    ``rejax_actor``: rejax's actor or ours piece by piece (:data:`REJAX_ACTORS`)."""
     cfg = comparison_config(seeds, total_steps, num_envs, rollout_steps, epochs, minibatches, width, depth,
                             eval_episodes, truncation)  # fmt: skip
     with tempfile.TemporaryDirectory() as scratch:
         ours, ours_rate = _train_ours(cfg, Path(folder or scratch) / "ours")
-    algo, actor_params, rejax_rate = _train_rejax(cfg, cfg.seed)
-    theirs = _evaluate_rejax(cfg, algo, actor_params)
+    algo, actor_params, rejax_rate = _train_rejax(cfg, cfg.seed, rejax_actor)
+    theirs = _evaluate_rejax(cfg, algo, actor_params, squashed=rejax_actor != "clipped")
 
     def side(returns, rate):
         interval = stats.stratified_bootstrap_ci(returns)
@@ -152,7 +210,7 @@ def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: in
         "rollout_steps": rollout_steps, "epochs": epochs, "minibatches": minibatches, "mlp": [width] * depth,
         "lr": a.actor_lr, "gamma": a.gamma, "gae_lambda": a.gae_lambda, "clip_eps": a.clip_eps,
         "ent_coef": a.ent_coef, "clip_norm": a.clip_norm, "eval_episodes": cfg.eval_episodes,
-        "xrl_jax_truncation": a.truncation,
+        "xrl_jax_truncation": a.truncation, "rejax_actor": rejax_actor,
     }  # fmt: skip
     return {
         "settings": settings,
