@@ -39,7 +39,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cli_args import OneLineParser, fail, positive_int
+from cli_args import OneLineParser, fail, fraction, positive_int
 
 from xrl_jax.config import PRESETS, ConfigError, parse_overrides
 
@@ -122,6 +122,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--rejax-actor", default="clipped", choices=["clipped", "squashed", "squashed_state_std"],
         help="rejax's side: its own Gaussian (clipped to the box), sampled before a tanh the env applies "
         "(squashed), and with log sigma a head of the features as ours (squashed_state_std)",
+    )  # fmt: skip
+    rj_parser.add_argument(
+        "--ent-coef", type=fraction, default=None,
+        help="both sides' entropy bonus (default: the quick preset's 0.01); 0 removes the term whose "
+        "form differs (rejax: the Gaussian's before the squash; ours: the squashed policy's)",
     )  # fmt: skip
     tk_parser = sub.add_parser("tracks", help="fresh-track refill cost per track, FLOPs per track")
     tk_parser.add_argument("--seeds", nargs="+", type=positive_int, default=[1, 4, 20])
@@ -298,6 +303,7 @@ def results(parser: argparse.ArgumentParser, args: argparse.Namespace):
         return B.ppo_against_rejax(
             args.seeds, args.steps, args.envs, args.rollout_steps, args.epochs, args.minibatches,
             args.width, args.depth, truncation=args.truncation, rejax_actor=args.rejax_actor,
+            ent_coef=args.ent_coef,
         )  # fmt: skip
     if args.command == "profile":
         return B.bench_profile(

@@ -41,6 +41,9 @@ def bench():
         (["train", "--seeds", "1", "--set", "log_interval=x"], "log_interval"),
         (["rejax", "--steps", "1000"], "--steps must be a multiple of one rollout"),
         (["rejax", "--envs", "4", "--rollout-steps", "3", "--steps", "12"], "which --minibatches must split"),
+        (["rejax", "--ent-coef", "nan"], "--ent-coef: expected a number in [0, 1], got nan"),
+        (["rejax", "--rejax-actor", "tanh"], "--rejax-actor: invalid choice: 'tanh'"),
+        (["rejax", "--truncation", "drop"], "--truncation: invalid choice: 'drop'"),
     ],
 )
 def test_bench_refuses_bad_input_in_one_line(bench, capsys, args, message):

@@ -43,7 +43,8 @@ REJAX_ACTORS = ("clipped", "squashed", "squashed_state_std")
 
 def comparison_config(seeds: int, total_steps: int, num_envs: int, rollout_steps: int, epochs: int,
                       minibatches: int, width: int, depth: int, eval_episodes: int = 100,
-                      truncation: str = "bootstrap") -> TrainConfig:  # fmt: skip
+                      truncation: str = "bootstrap",
+                      ent_coef: float | None = None) -> TrainConfig:  # fmt: skip
     """Our side: plain PPO on continuous Tracking with the shared settings, trained on a fixed bank of
     as many tracks as rejax's env holds (fresh tracks would cost ours the generator), in chunks of up
     to 16 rollouts (at least two chunks), one evaluation at the end."""
@@ -59,7 +60,7 @@ def comparison_config(seeds: int, total_steps: int, num_envs: int, rollout_steps
         "critic_depth": depth, "feature_extractor": "flat_pe", "pe_freqs": 0, "lr_decay_updates": 0,
         "train_tracks": DEFAULT_BANK_SIZE, "log_interval": chunk, "eval_interval": total_steps,
         "checkpoint_interval": total_steps, "num_devices": 1, "eval_episodes": eval_episodes,
-        "truncation": truncation,
+        "truncation": truncation, **({} if ent_coef is None else {"ent_coef": ent_coef}),
     }  # fmt: skip
     cfg = resolve_config("tracking", "ppo", "quick", num_seeds=seeds, total_steps=total_steps,
                          overrides={k: str(v) for k, v in overrides.items()})  # fmt: skip
@@ -184,15 +185,16 @@ def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, squashed: bool) -> np.
 def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: int = 16,
                       rollout_steps: int = 128, epochs: int = 4, minibatches: int = 8, width: int = 64,
                       depth: int = 2, folder: str | None = None, eval_episodes: int = 100,
-                      truncation: str = "bootstrap",
-                      rejax_actor: str = "clipped") -> dict[str, Any]:  # fmt: skip
+                      truncation: str = "bootstrap", rejax_actor: str = "clipped",
+                      ent_coef: float | None = None) -> dict[str, Any]:  # fmt: skip
     """Both PPOs at the settings given, ``seeds`` members each: final greedy returns per seed (over
     ``eval_episodes`` held-out tracks) with their IQM and 95 % interval, P(ours > rejax) with the
     Mann-Whitney test, and env steps per second. ``truncation``: how our side values the 60 s time
     limit (bootstrap: from the ending observation; terminal: as an end, rejax's reading);
-    ``rejax_actor``: rejax's actor or ours piece by piece (:data:`REJAX_ACTORS`)."""
+    ``rejax_actor``: rejax's actor or ours piece by piece (:data:`REJAX_ACTORS`); ``ent_coef``: both
+    sides' entropy bonus (none: the quick preset's 0.01)."""
     cfg = comparison_config(seeds, total_steps, num_envs, rollout_steps, epochs, minibatches, width, depth,
-                            eval_episodes, truncation)  # fmt: skip
+                            eval_episodes, truncation, ent_coef)  # fmt: skip
     with tempfile.TemporaryDirectory() as scratch:
         ours, ours_rate = _train_ours(cfg, Path(folder or scratch) / "ours")
     algo, actor_params, rejax_rate = _train_rejax(cfg, cfg.seed, rejax_actor)
