@@ -119,9 +119,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="how our side values the 60 s time limit: bootstrap (ours) or terminal (rejax's reading)",
     )  # fmt: skip
     rj_parser.add_argument(
-        "--rejax-actor", default="clipped", choices=["clipped", "squashed", "squashed_state_std"],
-        help="rejax's side: its own Gaussian (clipped to the box), sampled before a tanh the env applies "
-        "(squashed), and with log sigma a head of the features as ours (squashed_state_std)",
+        "--rejax-with", default="own", choices=["own", "squash", "state_std", "observation"],
+        help="rejax's side given ours piece by piece, each with the ones before: its own PPO; its Gaussian "
+        "sampled before a tanh the env applies (squash); log sigma a head of the features (state_std); "
+        "our flat encoding of the observation (observation)",
     )  # fmt: skip
     rj_parser.add_argument(
         "--ent-coef", type=fraction, default=None,
@@ -302,7 +303,7 @@ def results(parser: argparse.ArgumentParser, args: argparse.Namespace):
     if args.command == "rejax":
         return B.ppo_against_rejax(
             args.seeds, args.steps, args.envs, args.rollout_steps, args.epochs, args.minibatches,
-            args.width, args.depth, truncation=args.truncation, rejax_actor=args.rejax_actor,
+            args.width, args.depth, truncation=args.truncation, rejax_with=args.rejax_with,
             ent_coef=args.ent_coef,
         )  # fmt: skip
     if args.command == "profile":

@@ -42,7 +42,7 @@ def bench():
         (["rejax", "--steps", "1000"], "--steps must be a multiple of one rollout"),
         (["rejax", "--envs", "4", "--rollout-steps", "3", "--steps", "12"], "which --minibatches must split"),
         (["rejax", "--ent-coef", "nan"], "--ent-coef: expected a number in [0, 1], got nan"),
-        (["rejax", "--rejax-actor", "tanh"], "--rejax-actor: invalid choice: 'tanh'"),
+        (["rejax", "--rejax-with", "tanh"], "--rejax-with: invalid choice: 'tanh'"),
         (["rejax", "--truncation", "drop"], "--truncation: invalid choice: 'drop'"),
     ],
 )

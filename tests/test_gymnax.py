@@ -204,31 +204,41 @@ def test_the_rejax_comparison_gives_both_ppos_the_same_settings():
     assert float(make_rejax_ppo(ablation).ent_coef) == 0.0
 
 
-def test_the_rejax_ablation_gives_rejax_our_actor_piece_by_piece():
-    """squashed: the env takes unbounded actions and applies tanh (rejax's clip never acts);
-    squashed_state_std: also log σ a head of the features, so σ varies with the observation."""
+def test_the_rejax_ablation_gives_rejax_ours_piece_by_piece():
+    """squash: the env takes unbounded actions and applies tanh (rejax's clip never acts); state_std:
+    also log σ a head of the features, so σ varies with the observation; observation: also our flat
+    encoding, the points without their constant present and index columns."""
     pytest.importorskip("rejax", reason="rejax is not installed (pip install -e '.[gymnax-tests]')")
     from xrl_jax.benchmarks.third_party import comparison_config, make_rejax_ppo
 
     cfg = comparison_config(seeds=1, total_steps=8192, num_envs=16, rollout_steps=128, epochs=2,
                             minibatches=4, width=32, depth=2)  # fmt: skip
-    with pytest.raises(ValueError, match="rejax_actor must be one of"):
+    with pytest.raises(ValueError, match="rejax_with must be one of"):
         make_rejax_ppo(cfg, "tanh")
-    clipped, squashed = make_rejax_ppo(cfg), make_rejax_ppo(cfg, "squashed")
-    assert np.all(np.asarray(clipped.env.action_space(clipped.env_params).high) == 1.0)
-    assert np.all(np.isinf(np.asarray(squashed.env.action_space(squashed.env_params).high)))
+    own, squash = make_rejax_ppo(cfg), make_rejax_ppo(cfg, "squash")
+    assert np.all(np.asarray(own.env.action_space(own.env_params).high) == 1.0)
+    assert np.all(np.isinf(np.asarray(squash.env.action_space(squash.env_params).high)))
     key = jax.random.PRNGKey(0)
-    obs, state = squashed.env.reset(key, squashed.env_params)
+    obs, state = squash.env.reset(key, squash.env_params)
     wide = jnp.array([3.0, -0.5, 0.2])  # beyond the box where tanh saturates, and inside it
-    stepped = squashed.env.step(key, state, wide, squashed.env_params)[1]
-    expected = clipped.env.step(key, state, jnp.tanh(wide), clipped.env_params)[1]
+    stepped = squash.env.step(key, state, wide, squash.env_params)[1]
+    expected = own.env.step(key, state, jnp.tanh(wide), own.env_params)[1]
     chex.assert_trees_all_equal(stepped, expected)  # tanh taken eagerly in both: the same input bits
 
-    state_std = make_rejax_ppo(cfg, "squashed_state_std")
+    state_std = make_rejax_ppo(cfg, "state_std")
     params = state_std.actor.init(key, obs[None], key)
     other = jax.random.normal(key, obs[None].shape)
     std = [state_std.actor.apply(params, o, method="_action_dist").stddev() for o in (obs[None], other)]
     assert not np.allclose(std[0], std[1])  # rejax's own σ is one parameter vector for every state
+
+    ours = make_rejax_ppo(cfg, "observation")
+    # Each rung keeps the ones before: the state-dependent σ and the unbounded (squashed) actions.
+    assert type(ours.actor).__name__ == "StateStdGaussian" and np.isinf(ours.actor.action_range[1])
+    flat, _ = ours.env.reset(key, ours.env_params)
+    rows = np.asarray(obs[6:]).reshape(25, 4)  # gymnax's flat observation: state, then 25 rows
+    expected_flat = np.concatenate([np.asarray(obs[:6]), rows[:, 2:].ravel()])
+    np.testing.assert_array_equal(np.asarray(flat), expected_flat)
+    assert ours.env.observation_space(ours.env_params).shape == flat.shape == (6 + 25 * 2,)
 
 
 @pytest.mark.slow  # two PPOs trained (8,192 steps each) and evaluated on 5 held-out tracks

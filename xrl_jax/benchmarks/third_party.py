@@ -15,11 +15,14 @@ from its ending observation (``truncation="terminal"`` gives ours rejax's readin
 ``bench.py rejax --truncation terminal``). Both train on a fixed bank of 128 tracks (rejax on
 envs.make's default, ours on its trainer's bank of that size).
 
-``rejax_actor`` gives rejax's side ours piece by piece (the ablation of ``bench.py rejax
---rejax-actor``): ``squashed`` samples rejax's Gaussian in the unbounded space and the env applies
-tanh (the ratio taken there, as ours takes it); ``squashed_state_std`` also makes log σ a Dense head
-of the features, clipped to SAC's bounds, as our squashed Gaussian has it. The entropy bonus stays
-rejax's: the Gaussian's closed form before the squash.
+``rejax_with`` gives rejax's side ours piece by piece, each rung of :data:`REJAX_LADDER` with the
+ones before it (the ablation of ``bench.py rejax --rejax-with``): ``squash`` samples rejax's Gaussian
+in the unbounded space and the env applies tanh (the ratio taken there, as ours takes it);
+``state_std`` makes log σ a Dense head of the features, clipped to SAC's bounds, as our squashed
+Gaussian has it; ``observation`` feeds it our flat encoding (:class:`~xrl_jax.extractors.FlatPEExtractor`
+with no frequencies: the points without their constant present and index columns) instead of
+gymnax's flat observation. The entropy bonus stays rejax's: the Gaussian's closed form before the
+squash (``ent_coef=0`` takes it out of both sides).
 """
 
 from __future__ import annotations
@@ -37,8 +40,19 @@ import numpy as np
 from xrl_jax import stats
 from xrl_jax.config import LOG_STD_MAX, SAC_LOG_STD_MIN, TrainConfig, resolve_config
 
-# rejax's own actor, then ours piece by piece (the module docstring).
-REJAX_ACTORS = ("clipped", "squashed", "squashed_state_std")
+# rejax's own PPO, then given ours piece by piece, each rung with the ones before (module docstring).
+REJAX_LADDER = ("own", "squash", "state_std", "observation")
+
+
+def _has(rejax_with: str, piece: str) -> bool:
+    return REJAX_LADDER.index(rejax_with) >= REJAX_LADDER.index(piece)
+
+
+def _our_flat_observation(obs):
+    """Our side's input on Tracking: the state, then the points without their meta columns."""
+    from xrl_jax.extractors import FlatPEExtractor
+
+    return FlatPEExtractor(num_freqs=0).apply({}, obs)
 
 
 def comparison_config(seeds: int, total_steps: int, num_envs: int, rollout_steps: int, epochs: int,
@@ -81,22 +95,44 @@ def _train_ours(cfg: TrainConfig, folder: Path) -> tuple[np.ndarray, float]:
     return returns, steps / sum(seconds)
 
 
-def _squashing_env(env):
-    """``env`` (gymnax's older step API) taking unbounded actions and applying tanh to them: rejax's
-    clip to the action box then never acts, and the squash is the env's."""
+def _rejax_env(rejax_with: str):
+    """Tracking for rejax (gymnax's older step API), with ``rejax_with``'s pieces of ours: ``squash``
+    takes unbounded actions and applies tanh to them (rejax's clip to the box then never acts);
+    ``observation`` gives our flat encoding instead of gymnax's flat observation."""
     from gymnax.environments import spaces
 
-    from envs.gymnax import LegacyStepAPI
+    from envs import gymnax as carenv_gymnax
 
-    class TanhActions(LegacyStepAPI):
+    squash, ours = _has(rejax_with, "squash"), _has(rejax_with, "observation")
+    env, params = carenv_gymnax.make("tracking", flat_obs=not ours)
+    if not (squash or ours):
+        return carenv_gymnax.legacy_step_api(env), params
+    observe = _our_flat_observation if ours else lambda obs: obs
+    example = observe(env.reset(jax.random.PRNGKey(0), params)[0])
+
+    class WithOurs(carenv_gymnax.LegacyStepAPI):
+        def observation_space(self, params=None):
+            return (
+                spaces.Box(-jnp.inf, jnp.inf, example.shape, example.dtype)
+                if ours
+                else super().observation_space(params)
+            )
+
         def action_space(self, params=None):
             box = self._env.action_space(params)
-            return spaces.Box(-jnp.inf, jnp.inf, box.shape, box.dtype)
+            return spaces.Box(-jnp.inf, jnp.inf, box.shape, box.dtype) if squash else box
+
+        def reset(self, key, params=None):
+            obs, state = super().reset(key, params)
+            return observe(obs), state
 
         def step(self, key, state, action, params=None):
-            return super().step(key, state, jnp.tanh(action), params)
+            obs, state, reward, done, info = super().step(
+                key, state, jnp.tanh(action) if squash else action, params
+            )
+            return observe(obs), state, reward, done, info
 
-    return TanhActions(env)
+    return WithOurs(env), params
 
 
 def _state_std_actor(actor):
@@ -119,24 +155,21 @@ def _state_std_actor(actor):
     return StateStdGaussian(actor.action_dim, actor.action_range, actor.hidden_layer_sizes, actor.activation)
 
 
-def make_rejax_ppo(cfg: TrainConfig, rejax_actor: str = "clipped"):
+def make_rejax_ppo(cfg: TrainConfig, rejax_with: str = "own"):
     """rejax's PPO with ``cfg``'s shared settings on Tracking through :mod:`envs.gymnax`, evaluating
-    nothing while it trains (ours evaluates outside its timed chunks too); ``rejax_actor`` one of
-    :data:`REJAX_ACTORS`."""
-    if rejax_actor not in REJAX_ACTORS:
-        raise ValueError(f"rejax_actor must be one of {', '.join(REJAX_ACTORS)}, got {rejax_actor!r}")
+    nothing while it trains (ours evaluates outside its timed chunks too); ``rejax_with``: a rung of
+    :data:`REJAX_LADDER`."""
+    if rejax_with not in REJAX_LADDER:
+        raise ValueError(f"rejax_with must be one of {', '.join(REJAX_LADDER)}, got {rejax_with!r}")
     try:
         import rejax
     except ImportError:
         raise ImportError("bench.py rejax needs rejax: pip install -e '.[gymnax-tests]'") from None
-    from envs import gymnax as carenv_gymnax
 
     a = cfg.agent
-    env, params = carenv_gymnax.make("tracking", flat_obs=True)
-    squashed = rejax_actor != "clipped"
+    env, params = _rejax_env(rejax_with)
     algo = rejax.PPO.create(
-        env=_squashing_env(env) if squashed else carenv_gymnax.legacy_step_api(env), env_params=params,
-        total_timesteps=cfg.total_steps,
+        env=env, env_params=params, total_timesteps=cfg.total_steps,
         num_envs=cfg.num_envs, num_steps=a.rollout_steps, num_epochs=a.ppo_epochs,
         num_minibatches=a.ppo_minibatches, learning_rate=a.actor_lr, gamma=a.gamma,
         gae_lambda=a.gae_lambda, clip_eps=a.clip_eps, ent_coef=a.ent_coef, max_grad_norm=a.clip_norm,
@@ -144,15 +177,15 @@ def make_rejax_ppo(cfg: TrainConfig, rejax_actor: str = "clipped"):
         agent_kwargs={"hidden_layer_sizes": (a.actor_width,) * a.actor_depth, "activation": "relu"},
     )  # fmt: skip
     algo = algo.replace(eval_callback=lambda algo, ts, rng: jnp.zeros(()))
-    if rejax_actor == "squashed_state_std":
+    if _has(rejax_with, "state_std"):
         algo = algo.replace(actor=_state_std_actor(algo.actor))
     return algo
 
 
-def _train_rejax(cfg: TrainConfig, seed: int, rejax_actor: str) -> tuple[Any, Any, float]:
+def _train_rejax(cfg: TrainConfig, seed: int, rejax_with: str) -> tuple[Any, Any, float]:
     """(algorithm, trained actor params per member, env steps per second of the compiled training,
     compilation excluded)."""
-    algo = make_rejax_ppo(cfg, rejax_actor)
+    algo = make_rejax_ppo(cfg, rejax_with)
     keys = jax.random.split(jax.random.PRNGKey(seed), cfg.num_seeds)
     compiled = jax.jit(jax.vmap(algo.train)).lower(keys).compile()
     start = time.perf_counter()
@@ -162,9 +195,9 @@ def _train_rejax(cfg: TrainConfig, seed: int, rejax_actor: str) -> tuple[Any, An
     return algo, train_state.actor_ts.params, rate
 
 
-def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, squashed: bool) -> np.ndarray:
-    """Greedy returns (the mean action, clipped or squashed as it trained) per member on the
-    trainer's held-out tracks."""
+def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, rejax_with: str) -> np.ndarray:
+    """Greedy returns (the mean action, clipped or squashed as it trained, on the observation it
+    trained on) per member on the trainer's held-out tracks."""
     from envs.gymnax import flatten_observation
     from xrl_jax.evaluation import make_evaluate_policy
     from xrl_jax.train.kinds import make_envs
@@ -173,8 +206,9 @@ def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, squashed: bool) -> np.
 
     def greedy(key, params, obs, env_states, per_episode):
         del key, env_states, per_episode
-        mean = algo.actor.apply(params, flatten_observation(obs), method="_action_dist").mean()
-        return jnp.tanh(mean) if squashed else jnp.clip(mean, -1.0, 1.0)
+        observe = _our_flat_observation if _has(rejax_with, "observation") else flatten_observation
+        mean = algo.actor.apply(params, observe(obs), method="_action_dist").mean()
+        return jnp.tanh(mean) if _has(rejax_with, "squash") else jnp.clip(mean, -1.0, 1.0)
 
     evaluate = make_evaluate_policy(env, eval_params, greedy, cfg.eval_episodes)
     keys = jax.random.split(jax.random.PRNGKey(cfg.eval_track_seed), cfg.num_seeds)
@@ -185,20 +219,20 @@ def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, squashed: bool) -> np.
 def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: int = 16,
                       rollout_steps: int = 128, epochs: int = 4, minibatches: int = 8, width: int = 64,
                       depth: int = 2, folder: str | None = None, eval_episodes: int = 100,
-                      truncation: str = "bootstrap", rejax_actor: str = "clipped",
+                      truncation: str = "bootstrap", rejax_with: str = "own",
                       ent_coef: float | None = None) -> dict[str, Any]:  # fmt: skip
     """Both PPOs at the settings given, ``seeds`` members each: final greedy returns per seed (over
     ``eval_episodes`` held-out tracks) with their IQM and 95 % interval, P(ours > rejax) with the
     Mann-Whitney test, and env steps per second. ``truncation``: how our side values the 60 s time
     limit (bootstrap: from the ending observation; terminal: as an end, rejax's reading);
-    ``rejax_actor``: rejax's actor or ours piece by piece (:data:`REJAX_ACTORS`); ``ent_coef``: both
+    ``rejax_with``: rejax's own or given ours piece by piece (:data:`REJAX_LADDER`); ``ent_coef``: both
     sides' entropy bonus (none: the quick preset's 0.01)."""
     cfg = comparison_config(seeds, total_steps, num_envs, rollout_steps, epochs, minibatches, width, depth,
                             eval_episodes, truncation, ent_coef)  # fmt: skip
     with tempfile.TemporaryDirectory() as scratch:
         ours, ours_rate = _train_ours(cfg, Path(folder or scratch) / "ours")
-    algo, actor_params, rejax_rate = _train_rejax(cfg, cfg.seed, rejax_actor)
-    theirs = _evaluate_rejax(cfg, algo, actor_params, squashed=rejax_actor != "clipped")
+    algo, actor_params, rejax_rate = _train_rejax(cfg, cfg.seed, rejax_with)
+    theirs = _evaluate_rejax(cfg, algo, actor_params, rejax_with)
 
     def side(returns, rate):
         interval = stats.stratified_bootstrap_ci(returns)
@@ -212,7 +246,7 @@ def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: in
         "rollout_steps": rollout_steps, "epochs": epochs, "minibatches": minibatches, "mlp": [width] * depth,
         "lr": a.actor_lr, "gamma": a.gamma, "gae_lambda": a.gae_lambda, "clip_eps": a.clip_eps,
         "ent_coef": a.ent_coef, "clip_norm": a.clip_norm, "eval_episodes": cfg.eval_episodes,
-        "xrl_jax_truncation": a.truncation, "rejax_actor": rejax_actor,
+        "xrl_jax_truncation": a.truncation, "rejax_with": rejax_with,
     }  # fmt: skip
     return {
         "settings": settings,
