@@ -129,6 +129,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="both sides' entropy bonus (default: the quick preset's 0.01); 0 removes the term whose "
         "form differs (rejax: the Gaussian's before the squash; ours: the squashed policy's)",
     )  # fmt: skip
+    rj_parser.add_argument(
+        "--value-clip", action="store_true",
+        help="our side clips the value's move per rollout at the clip range, as rejax's value loss does",
+    )  # fmt: skip
     tk_parser = sub.add_parser("tracks", help="fresh-track refill cost per track, FLOPs per track")
     tk_parser.add_argument("--seeds", nargs="+", type=positive_int, default=[1, 4, 20])
     tk_parser.add_argument(
@@ -249,6 +253,18 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
         parser.error("every --seeds value must be a multiple of every --devices value")
 
 
+def rejax_changes(args: argparse.Namespace) -> dict[str, object]:
+    """The settings ``bench.py rejax``'s ablation options change (ours alone, or both sides)."""
+    changes: dict[str, object] = {"truncation": args.truncation}
+    if args.ent_coef is not None:
+        changes["ent_coef"] = args.ent_coef
+    if args.value_clip:
+        from xrl_jax.config import AgentConfig
+
+        changes["value_clip_eps"] = AgentConfig().clip_eps  # rejax's value clip is its ratio's range
+    return changes
+
+
 def results(parser: argparse.ArgumentParser, args: argparse.Namespace):
     """The sub-command's measurements (``main`` split the host first, where it does)."""
     # Imported once the host is split: importing the envs may start the backend.
@@ -303,8 +319,7 @@ def results(parser: argparse.ArgumentParser, args: argparse.Namespace):
     if args.command == "rejax":
         return B.ppo_against_rejax(
             args.seeds, args.steps, args.envs, args.rollout_steps, args.epochs, args.minibatches,
-            args.width, args.depth, truncation=args.truncation, rejax_with=args.rejax_with,
-            ent_coef=args.ent_coef,
+            args.width, args.depth, rejax_with=args.rejax_with, changes=rejax_changes(args),
         )  # fmt: skip
     if args.command == "profile":
         return B.bench_profile(

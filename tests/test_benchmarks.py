@@ -51,6 +51,16 @@ def test_bench_refuses_bad_input_in_one_line(bench, capsys, args, message):
     one_line_error(status, err, message)
 
 
+def test_bench_rejax_ablation_options_become_the_settings_they_change(bench):
+    def changes(*args):
+        return bench.rejax_changes(bench.build_parser().parse_args(["rejax", *args]))
+
+    assert changes() == {"truncation": "bootstrap"}  # ours as it trains
+    assert changes("--truncation", "terminal", "--ent-coef", "0", "--value-clip") == {
+        "truncation": "terminal", "ent_coef": 0.0, "value_clip_eps": 0.2,
+    }  # fmt: skip
+
+
 def test_bench_env_offers_every_single_agent_scenario(bench):
     import envs
 

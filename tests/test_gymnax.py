@@ -198,8 +198,8 @@ def test_the_rejax_comparison_gives_both_ppos_the_same_settings():
     assert (a.critic_width, a.critic_depth, a.feature_extractor, a.pe_freqs) == (32, 2, "flat_pe", 0)
     assert a.truncation == "bootstrap"  # ours by default; the ablation takes rejax's reading
     ablation = comparison_config(seeds=2, total_steps=8192, num_envs=16, rollout_steps=128, epochs=3,
-                                 minibatches=4, width=32, depth=2, truncation="terminal",
-                                 ent_coef=0.0)  # fmt: skip
+                                 minibatches=4, width=32, depth=2,
+                                 changes={"truncation": "terminal", "ent_coef": 0.0})  # fmt: skip
     assert ablation.agent.truncation == "terminal" and ablation.agent.ent_coef == 0.0 != a.ent_coef
     assert float(make_rejax_ppo(ablation).ent_coef) == 0.0
 

@@ -11,9 +11,10 @@ actor through :func:`xrl_jax.evaluation.make_evaluate_policy`).
 What differs is each library's own PPO, which is what the comparison is for: rejax's Gaussian has a
 state-independent standard deviation and clips its samples to the action box, ours is SAC's squashed
 Gaussian with a state-dependent one; rejax treats a truncated step as terminal, ours bootstraps it
-from its ending observation (``truncation="terminal"`` gives ours rejax's reading: the ablation of
-``bench.py rejax --truncation terminal``). Both train on a fixed bank of 128 tracks (rejax on
-envs.make's default, ours on its trainer's bank of that size).
+from its ending observation; rejax clips its value loss (the value moves at most ε per rollout), ours
+does not. Both train on a fixed bank of 128 tracks (rejax on envs.make's default, ours on its
+trainer's bank of that size). ``bench.py rejax --truncation terminal`` and ``--value-clip`` give ours
+rejax's readings.
 
 ``rejax_with`` gives rejax's side ours piece by piece, each rung of :data:`REJAX_LADDER` with the
 ones before it (the ablation of ``bench.py rejax --rejax-with``): ``squash`` samples rejax's Gaussian
@@ -30,6 +31,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -57,8 +59,7 @@ def _our_flat_observation(obs):
 
 def comparison_config(seeds: int, total_steps: int, num_envs: int, rollout_steps: int, epochs: int,
                       minibatches: int, width: int, depth: int, eval_episodes: int = 100,
-                      truncation: str = "bootstrap",
-                      ent_coef: float | None = None) -> TrainConfig:  # fmt: skip
+                      changes: Mapping[str, Any] | None = None) -> TrainConfig:  # fmt: skip
     """Our side: plain PPO on continuous Tracking with the shared settings, trained on a fixed bank of
     as many tracks as rejax's env holds (fresh tracks would cost ours the generator), in chunks of up
     to 16 rollouts (at least two chunks), one evaluation at the end."""
@@ -74,7 +75,7 @@ def comparison_config(seeds: int, total_steps: int, num_envs: int, rollout_steps
         "critic_depth": depth, "feature_extractor": "flat_pe", "pe_freqs": 0, "lr_decay_updates": 0,
         "train_tracks": DEFAULT_BANK_SIZE, "log_interval": chunk, "eval_interval": total_steps,
         "checkpoint_interval": total_steps, "num_devices": 1, "eval_episodes": eval_episodes,
-        "truncation": truncation, **({} if ent_coef is None else {"ent_coef": ent_coef}),
+        "truncation": "bootstrap", **(changes or {}),
     }  # fmt: skip
     cfg = resolve_config("tracking", "ppo", "quick", num_seeds=seeds, total_steps=total_steps,
                          overrides={k: str(v) for k, v in overrides.items()})  # fmt: skip
@@ -219,16 +220,16 @@ def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, rejax_with: str) -> np
 def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: int = 16,
                       rollout_steps: int = 128, epochs: int = 4, minibatches: int = 8, width: int = 64,
                       depth: int = 2, folder: str | None = None, eval_episodes: int = 100,
-                      truncation: str = "bootstrap", rejax_with: str = "own",
-                      ent_coef: float | None = None) -> dict[str, Any]:  # fmt: skip
+                      rejax_with: str = "own",
+                      changes: Mapping[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
     """Both PPOs at the settings given, ``seeds`` members each: final greedy returns per seed (over
     ``eval_episodes`` held-out tracks) with their IQM and 95 % interval, P(ours > rejax) with the
-    Mann-Whitney test, and env steps per second. ``truncation``: how our side values the 60 s time
-    limit (bootstrap: from the ending observation; terminal: as an end, rejax's reading);
-    ``rejax_with``: rejax's own or given ours piece by piece (:data:`REJAX_LADDER`); ``ent_coef``: both
-    sides' entropy bonus (none: the quick preset's 0.01)."""
+    Mann-Whitney test, and env steps per second. ``rejax_with``: rejax's own PPO or given ours piece by
+    piece (:data:`REJAX_LADDER`); ``changes``: settings of the config changed for an ablation, read by
+    both sides where rejax has them (``ent_coef``), else by ours alone (``truncation="terminal"``,
+    ``value_clip_eps``: rejax's readings of the time limit and the value loss)."""
     cfg = comparison_config(seeds, total_steps, num_envs, rollout_steps, epochs, minibatches, width, depth,
-                            eval_episodes, truncation, ent_coef)  # fmt: skip
+                            eval_episodes, changes)  # fmt: skip
     with tempfile.TemporaryDirectory() as scratch:
         ours, ours_rate = _train_ours(cfg, Path(folder or scratch) / "ours")
     algo, actor_params, rejax_rate = _train_rejax(cfg, cfg.seed, rejax_with)
@@ -246,7 +247,8 @@ def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: in
         "rollout_steps": rollout_steps, "epochs": epochs, "minibatches": minibatches, "mlp": [width] * depth,
         "lr": a.actor_lr, "gamma": a.gamma, "gae_lambda": a.gae_lambda, "clip_eps": a.clip_eps,
         "ent_coef": a.ent_coef, "clip_norm": a.clip_norm, "eval_episodes": cfg.eval_episodes,
-        "xrl_jax_truncation": a.truncation, "rejax_with": rejax_with,
+        "xrl_jax_truncation": a.truncation, "xrl_jax_value_clip_eps": a.value_clip_eps,
+        "rejax_with": rejax_with,
     }  # fmt: skip
     return {
         "settings": settings,
