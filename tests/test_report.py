@@ -503,6 +503,27 @@ def test_every_trained_agent_has_a_colour_of_its_own():
     assert len(set(AGENT_COLOURS.values())) == len(AGENT_COLOURS)
 
 
+def test_the_report_orders_and_pairs_the_on_policy_agents_as_the_sac_family(tmp_path):
+    """Reporting a PPO run raised (its algo had no row order); XDPPO is compared with DPPO as XDSAC
+    with DSAC, and the report is written with every trained agent in it."""
+    from xrl_jax.config import TRAINED_ALGOS
+    from xrl_jax.report_figures import ALGO_ORDER
+
+    assert sorted(ALGO_ORDER) == sorted(TRAINED_ALGOS)
+    folders = [
+        fake_run(tmp_path / "xdppo", "tracking", "xdppo", "quick", [13.0, 15.0, 17.0, 9.0]),
+        fake_run(tmp_path / "dppo", "tracking", "dppo", "quick", [10.0, 12.0, 14.0, 16.0]),
+        fake_run(tmp_path / "xdsac", "tracking", "xdsac", "quick", [1.0, 2.0, 3.0, 4.0]),
+    ]
+    runs = [read_run(folder) for folder in folders]
+    assert [row["agent"] for row in results_rows(runs, "tracking")] == ["xdsac", "dppo", "xdppo"]
+    (found,) = improvements(runs, "tracking")
+    assert (found["x"], found["y"]) == (runs[0].label, runs[1].label)
+    assert found["estimate"] == pytest.approx(9 / 16)
+    write_report(folders, tmp_path / "report")
+    assert "P(xdppo" in (tmp_path / "report" / "report.md").read_text()
+
+
 def test_the_report_tabulates_explanation_statistics_and_keeps_them(tmp_path):
     """Issue 52: a run folder with ``explain.py --stats`` output gets a row (its numbers as written);
     the kept records carry the statistics, so a report written again from them has the row too."""

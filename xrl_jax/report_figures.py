@@ -12,7 +12,7 @@ from xrl_jax.runs.tables import curve_label
 
 Run = Any  # xrl_jax.report.Run (a run's cfg, summary and label); that module sits above this one
 
-ALGO_ORDER = ("sac", "xsac", "dsac", "xdsac")
+ALGO_ORDER = ("sac", "xsac", "dsac", "xdsac", "ppo", "xppo", "dppo", "xdppo")  # rows: each baseline, its X
 # One colour per agent in every figure: a baseline and its explainable agent in one hue family's
 # neighbours would be hard to tell apart, so the pairs get contrasting colours.
 AGENT_COLOURS = {

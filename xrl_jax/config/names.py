@@ -13,7 +13,8 @@ MIXTURE_ALGOS = ("xsac", "xdsac")
 ON_POLICY_ALGOS = ("ppo", "dppo", "xppo", "xdppo")
 ACTOR_TWIN = {"ppo": "sac", "dppo": "dsac", "xppo": "xsac", "xdppo": "xdsac"}
 TRAINED_ALGOS = (*ALGOS, *ON_POLICY_ALGOS)  # what run.py trains; ALGOS are the paper's (its campaign)
-BASELINES = {"xsac": "sac", "xdsac": "dsac"}  # each explainable agent against the agent it extends
+# Each explainable agent against the agent it extends (the report's P(X > baseline)).
+BASELINES = {"xsac": "sac", "xdsac": "dsac", "xppo": "ppo", "xdppo": "dppo"}
 FEATURE_EXTRACTORS = ("deepset", "flat_pe")  # names of xrl_jax.networks.make_extractor
 CRITIC_LOSSES = ("huber", "l2")
 TRUNCATION_MODES = ("drop", "bootstrap", "terminal")
