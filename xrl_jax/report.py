@@ -242,21 +242,18 @@ def _make_report_folder(out: Path) -> None:
         raise ReportError(f"cannot create the report folder --out {out}: {err.strerror or err}") from None
 
 
-RACING_ENDINGS = {"left the track": "avg_end_left_track", "time limit": "avg_end_time_limit",
-                  "idled out": "avg_end_idling", "invalid action": "avg_end_invalid_action",
-                  "distance at the end (m)": "avg_end_progress_m"}  # fmt: skip
-INTERSECTION_ENDINGS = {"completed trips": "avg_trips_completed", "left the road": "avg_come_off_vehicles",
-                        "collided": "avg_collided_vehicles"}  # fmt: skip
-
-
 def ending_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
     """Why and where each plain run's final-evaluation episodes end, a mean over the seeds whose final
     evaluation records it: on the racing scenarios the share of episodes that left the track, hit the
     time limit, idled out or sent an invalid action, and the distance driven along the track at the
     end (m, ``avg_end_*``, :func:`xrl_jax.evaluation.summarize_episodes`); on the Intersection the
-    cars per episode that completed their trip, left the road or collided. Empty where none does."""
-    counts = scenario_kind(env).name == "multi_agent"  # cars per episode, not shares of the episodes
-    columns = INTERSECTION_ENDINGS if counts else RACING_ENDINGS
+    cars per episode that completed their trip, left the road or collided (the scenario kind's
+    :attr:`~xrl_jax.train.kinds.base.ScenarioKind.endings`). Empty where none does."""
+    kind = scenario_kind(env)
+    columns = dict(kind.endings)
+    if not columns:  # a user's env: its evaluation records no ending
+        return []
+    shares = kind.ending_unit == "share of episodes"
     rows = []
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
     for run in sorted(plain, key=lambda r: (ALGO_ORDER.index(r.cfg.algo), r.cfg.preset, r.name)):
@@ -268,7 +265,7 @@ def ending_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
         row = {"agent": run.label, "seeds": str(len(recorded))}
         for label, key in columns.items():
             value = float(np.mean([seed_row[key] for seed_row in recorded]))
-            row[label] = f"{value:.1f}" if counts or key == "avg_end_progress_m" else f"{value:.2f}"
+            row[label] = f"{value:.2f}" if shares and key != "avg_end_progress_m" else f"{value:.1f}"
         rows.append(row)
     return rows
 
@@ -380,7 +377,7 @@ def _write_report(
         lines += [markdown_table(rows), ""]
         endings = ending_rows(runs, env)
         if endings:
-            unit = "cars per episode" if scenario_kind(env).name == "multi_agent" else "share of episodes"
+            unit = scenario_kind(env).ending_unit
             lines += [f"How the final evaluation's episodes end ({unit}; mean over seeds; from runs whose "
                       "evaluations record it):", "", markdown_table(endings), ""]  # fmt: skip
         figure = env_figure(runs, env, references)

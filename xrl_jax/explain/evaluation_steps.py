@@ -285,12 +285,15 @@ def explained_steps(cfg, trainer, agent_state, key=None) -> ExplainedSteps:
     key = jax.random.PRNGKey(0) if key is None else key
     from xrl_jax.train import scenario_kind
 
-    if scenario_kind(cfg).name == "multi_agent":
+    figure = scenario_kind(cfg).figure  # what an explanation follows: a car on a track, or agent slots
+    if figure == "slots":
         records = _intersection_rollouts(trainer, agent_state, cfg.eval_episodes, key)
         parts = [_intersection_steps(record) for record in records]
-    else:
+    elif figure == "track":
         records = _racing_rollouts(trainer, agent_state, cfg.eval_episodes, key)
         parts = [_racing_steps(cfg.env_name, trainer, record) for record in records]
+    else:
+        raise ValueError(f"explanation statistics read tracks or agent slots; {cfg.env} has neither")
     return join_steps(parts)
 
 

@@ -58,7 +58,8 @@ class ScenarioKind:
     * evaluation: :meth:`make_evaluate` (the protocol of its runs), :meth:`check_reevaluation`
       (whether ``evaluate.py`` can drive its runs again on tracks), :attr:`seeded_evaluation`;
     * the campaign: :meth:`updates_per_env_step` (its cost);
-    * the report and the explanation: :attr:`pairs_figure`, :attr:`figure`, :attr:`slots_explained`.
+    * the report and the explanation: :attr:`pairs_figure`, :attr:`endings`, :attr:`figure`,
+      :attr:`slots_explained`.
     """
 
     name: str = ""
@@ -86,6 +87,10 @@ class ScenarioKind:
     # Whether vector_step reads the run's length (cfg.total_steps): if not, runs of any length share
     # one compiled chunk (xrl_jax.train.chunk.get_trainer).
     steps_read_run_length: bool = False
+    # The report's table of how the final evaluation's episodes end: (column, evaluation record key)
+    # pairs, means over seeds in ``ending_unit``; none: the evaluation records no ending.
+    endings: tuple[tuple[str, str], ...] = ()
+    ending_unit: str = "share of episodes"
 
     # ---- envs ------------------------------------------------------------------------------------
     def make_envs(self, cfg: TrainConfig) -> tuple[Any, Any, Any]:

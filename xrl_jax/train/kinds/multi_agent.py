@@ -36,6 +36,9 @@ class MultiAgent(ScenarioKind):
     pairs_figure = True
     figure = "slots"
     slots_explained = MAX_AGENTS
+    endings = (("completed trips", "avg_trips_completed"), ("left the road", "avg_come_off_vehicles"),
+               ("collided", "avg_collided_vehicles"))  # fmt: skip
+    ending_unit = "cars per episode"
     training_episodes_like_evaluation = False  # one car's episodes; the evaluation scores the scene
     idle_actors = True  # a slot without a vehicle
     steps_read_run_length = True  # the owed updates are all paid at the run's last step
