@@ -546,7 +546,9 @@ def test_the_report_tabulates_explanation_statistics_and_keeps_them(tmp_path):
     for folder, written in ((xdsac, explained), (dsac, {"seeds": 2, "deletion": deletion("occlusion")})):
         (folder / "explain" / "stats").mkdir(parents=True)
         (folder / "explain" / "stats" / "stats.json").write_text(json.dumps(written))
-    rows = explanation_rows(read_runs([dsac, xdsac]))
+    rows = explanation_rows(read_runs([xdsac, dsac]))
+    assert [row["agent"] for row in rows] == ["dsac (dsac)", "xdsac (xdsac)"]  # as the results tables
+    assert explanation_rows(read_runs([dsac, xdsac])) == rows  # whatever the folders' order
     by_agent = {row["agent"]: row for row in rows}
     row = by_agent["xdsac (xdsac)"]
     assert row["objects for 90 %"] == "4.50 [4.00, 5.00]" and row["step-to-step TV"] == "0.092 [0.070, 0.110]"

@@ -312,9 +312,10 @@ def table_one_rows(runs: list[Run], policy_costs=None) -> list[dict[str, str]]:
 def explanation_rows(runs: list[Run]) -> list[dict[str, str]]:
     """One row per run folder with explanation statistics (``explain.py --stats``): the explanation's
     size and step-to-step change, how alike the seeds are, where the weight goes by object kind, and
-    the deletion curves against random order (mean over k > 0, mean over seeds [95 % CI])."""
+    the deletion curves against random order (mean over k > 0, mean over seeds [95 % CI]); by scenario,
+    then agent as the results tables, so that the order does not depend on the folders' order."""
     rows = []
-    for run in runs:
+    for run in sorted(runs, key=lambda r: (r.cfg.env, ALGO_ORDER.index(r.cfg.algo), r.name)):
         for folder in run.folders:
             path = run_paths(folder)["explain_stats"] / "stats.json"
             if not path.is_file():
