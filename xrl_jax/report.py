@@ -249,23 +249,21 @@ def ending_rows(runs: list[Run], env: str) -> list[dict[str, str]]:
     end (m, ``avg_end_*``, :func:`xrl_jax.evaluation.summarize_episodes`); on the Intersection the
     cars per episode that completed their trip, left the road or collided (the scenario kind's
     :attr:`~xrl_jax.train.kinds.base.ScenarioKind.endings`). Empty where none does."""
-    kind = scenario_kind(env)
-    columns = dict(kind.endings)
+    columns = scenario_kind(env).endings
     if not columns:  # a user's env: its evaluation records no ending
         return []
-    shares = kind.ending_unit == "share of episodes"
     rows = []
     plain = [r for r in runs if r.cfg.env == env and not r.is_sweep]
     for run in sorted(plain, key=lambda r: (ALGO_ORDER.index(r.cfg.algo), r.cfg.preset, r.name)):
         recorded = [
-            row for row in run.summary["per_seed"].values() if all(k in row for k in columns.values())
+            row for row in run.summary["per_seed"].values() if all(key in row for _, key, _ in columns)
         ]
         if not recorded:
             continue
         row = {"agent": run.label, "seeds": str(len(recorded))}
-        for label, key in columns.items():
+        for label, key, decimals in columns:
             value = float(np.mean([seed_row[key] for seed_row in recorded]))
-            row[label] = f"{value:.2f}" if shares and key != "avg_end_progress_m" else f"{value:.1f}"
+            row[label] = f"{value:.{decimals}f}"
         rows.append(row)
     return rows
 

@@ -87,9 +87,9 @@ class ScenarioKind:
     # Whether vector_step reads the run's length (cfg.total_steps): if not, runs of any length share
     # one compiled chunk (xrl_jax.train.chunk.get_trainer).
     steps_read_run_length: bool = False
-    # The report's table of how the final evaluation's episodes end: (column, evaluation record key)
-    # pairs, means over seeds in ``ending_unit``; none: the evaluation records no ending.
-    endings: tuple[tuple[str, str], ...] = ()
+    # The report's table of how the final evaluation's episodes end: (column, evaluation record key,
+    # decimals shown), means over seeds in ``ending_unit``; none: the evaluation records no ending.
+    endings: tuple[tuple[str, str, int], ...] = ()
     ending_unit: str = "share of episodes"
 
     # ---- envs ------------------------------------------------------------------------------------

@@ -36,8 +36,8 @@ class MultiAgent(ScenarioKind):
     pairs_figure = True
     figure = "slots"
     slots_explained = MAX_AGENTS
-    endings = (("completed trips", "avg_trips_completed"), ("left the road", "avg_come_off_vehicles"),
-               ("collided", "avg_collided_vehicles"))  # fmt: skip
+    endings = (("completed trips", "avg_trips_completed", 1), ("left the road", "avg_come_off_vehicles", 1),
+               ("collided", "avg_collided_vehicles", 1))  # fmt: skip
     ending_unit = "cars per episode"
     training_episodes_like_evaluation = False  # one car's episodes; the evaluation scores the scene
     idle_actors = True  # a slot without a vehicle

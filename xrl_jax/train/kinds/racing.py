@@ -19,9 +19,9 @@ class Racing(ScenarioKind):
     name = "racing"
     rollout_velocity = "rollout/avg_track_velocity"
     figure = "track"
-    endings = (("left the track", "avg_end_left_track"), ("time limit", "avg_end_time_limit"),
-               ("idled out", "avg_end_idling"), ("invalid action", "avg_end_invalid_action"),
-               ("distance at the end (m)", "avg_end_progress_m"))  # fmt: skip
+    endings = (("left the track", "avg_end_left_track", 2), ("time limit", "avg_end_time_limit", 2),
+               ("idled out", "avg_end_idling", 2), ("invalid action", "avg_end_invalid_action", 2),
+               ("distance at the end (m)", "avg_end_progress_m", 1))  # fmt: skip
 
     def make_envs(self, cfg: TrainConfig):
         """The fixed evaluation tracks, and for training a fixed bank (``train_tracks`` > 0) or, with
