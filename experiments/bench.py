@@ -41,6 +41,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cli_args import OneLineParser, fail, fraction, positive_int
 
+from xrl_jax.benchmarks.third_party import REJAX_LADDER
 from xrl_jax.config import PRESETS, ConfigError, parse_overrides
 
 ROOT = Path(__file__).resolve().parents[1]  # the working tree that `compare` times against another commit
@@ -119,10 +120,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="how our side values the 60 s time limit: bootstrap (ours) or terminal (rejax's reading)",
     )  # fmt: skip
     rj_parser.add_argument(
-        "--rejax-with", default="own", choices=["own", "squash", "state_std", "observation"],
+        "--rejax-with", default="own", choices=list(REJAX_LADDER),
         help="rejax's side given ours piece by piece, each with the ones before: its own PPO; its Gaussian "
         "sampled before a tanh the env applies (squash); log sigma a head of the features (state_std); "
-        "our flat encoding of the observation (observation)",
+        "our flat encoding of the observation (observation); the gradient's global norm clipped, not each "
+        "element (global_clip)",
     )  # fmt: skip
     rj_parser.add_argument(
         "--ent-coef", type=fraction, default=None,

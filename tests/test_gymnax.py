@@ -207,7 +207,8 @@ def test_the_rejax_comparison_gives_both_ppos_the_same_settings():
 def test_the_rejax_ablation_gives_rejax_ours_piece_by_piece():
     """squash: the env takes unbounded actions and applies tanh (rejax's clip never acts); state_std:
     also log σ a head of the features, so σ varies with the observation; observation: also our flat
-    encoding, the points without their constant present and index columns."""
+    encoding, the points without their constant present and index columns; global_clip: also the
+    gradient's global norm clipped at clip_norm, where rejax clips each element."""
     pytest.importorskip("rejax", reason="rejax is not installed (pip install -e '.[gymnax-tests]')")
     from xrl_jax.benchmarks.third_party import comparison_config, make_rejax_ppo
 
@@ -239,6 +240,20 @@ def test_the_rejax_ablation_gives_rejax_ours_piece_by_piece():
     expected_flat = np.concatenate([np.asarray(obs[:6]), rows[:, 2:].ravel()])
     np.testing.assert_array_equal(np.asarray(flat), expected_flat)
     assert ours.env.observation_space(ours.env_params).shape == flat.shape == (6 + 25 * 2,)
+
+    # global_clip: a gradient of ones is clipped to norm clip_norm as a whole (each element
+    # clip_norm/sqrt(n)), not element by element (each clip_norm); Adam's first moment after one
+    # step is (1 - b1) times what the clip let through, in both.
+    for rung, each in (("observation", lambda n: 0.5), ("global_clip", lambda n: 0.5 / np.sqrt(n))):
+        algo = make_rejax_ppo(cfg, rung)
+        assert float(algo.max_grad_norm) == cfg.agent.clip_norm == 0.5
+        for ts in (algo.init_state(key).actor_ts, algo.init_state(key).critic_ts):
+            ones = jax.tree_util.tree_map(jnp.ones_like, ts.params)
+            n = sum(x.size for x in jax.tree_util.tree_leaves(ones))
+            first_moment = ts.apply_gradients(grads=ones).opt_state[1][0].mu
+            for leaf in jax.tree_util.tree_leaves(first_moment):  # float32 rounding of 0.1 * 0.5 / sqrt(n)
+                np.testing.assert_allclose(leaf, 0.1 * each(n), rtol=1e-5)
+    assert type(algo.actor).__name__ == "StateStdGaussian"  # the rungs before it kept
 
 
 @pytest.mark.slow  # two PPOs trained (8,192 steps each) and evaluated on 5 held-out tracks

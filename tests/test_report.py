@@ -476,6 +476,51 @@ def test_runs_of_one_protocol_from_different_base_seeds_are_pooled_into_one_row(
     assert notes == ["first, twin ran one protocol from one base seed (the same seeds); reported separately"]
 
 
+def test_pieces_of_one_sweep_are_pooled_into_the_sweep_of_them_all(folders, tmp_path):
+    """Fig. 8 is longer than a session on a small machine, so it is trained in pieces (some κ values,
+    some seeds each): the report reads them as the one sweep. The fixture's sweep (κ = 0, 0.001, 0.01,
+    2 seeds each, returns 1-6 point-major) split by values, and split by seeds, gives its summary and
+    its Fig. 8 reading exactly; a point fewer pieces trained is incomplete; pieces that trained one seed
+    of one point stay apart, and say why."""
+    from xrl_jax.comparisons import sweep_comparisons
+
+    def piece(name, kappas, returns, seed):
+        return fake_run(tmp_path / name, "country_road", "xdsac", "smoke", returns, sweep=[f"kappa={kappas}"],
+                        overrides={"seed": str(seed)})  # fmt: skip
+
+    whole, baseline = read_run(folders["sweep"]), read_run(folders["dsac"])
+    by_values = [piece("low", "0,0.001", [1.0, 2.0, 3.0, 4.0], 0), piece("high", "0.01", [5.0, 6.0], 0)]
+    by_seeds = [piece("even", "0,0.001,0.01", [1.0, 3.0, 5.0], 0),
+                piece("odd", "0,0.001,0.01", [2.0, 4.0, 6.0], 5)]  # fmt: skip
+    for pieces in (by_values, by_seeds):
+        notes = []
+        (pooled,) = read_runs(pieces, note=notes.append)
+        assert pooled.is_sweep and pooled.cfg.num_points == 3 and pooled.cfg.num_seeds == 2
+        assert pooled.summary["sweep"] == whole.summary["sweep"]
+        assert pooled.summary["per_seed"] == whole.summary["per_seed"] and pooled.summary["complete"]
+        assert sweep_comparisons(pooled, baseline) == sweep_comparisons(whole, baseline)
+        assert notes and notes[0].startswith("one protocol's seeds pooled")
+
+    short = piece("short", "0.01", [5.0], 3)  # κ = 0.01 with one seed: that point lacks one
+    (pooled,) = read_runs([by_values[0], short])
+    assert [p["seeds"] for p in pooled.summary["sweep"]["points"]] == [[0, 1], [0, 1], [0]]
+    assert pooled.status() == "incomplete: 5 of 6 seeds have their final evaluation"
+
+    again = piece("again", "0.001,0.01", [7.0, 8.0, 9.0, 10.0], 0)  # κ = 0.001 from base seed 0 twice
+    notes = []
+    runs = read_runs([by_values[0], again], note=notes.append)
+    assert sorted(r.name for r in runs) == ["again", "low"]
+    assert notes == ["low, again ran one protocol from one base seed (the same seeds); reported separately"]
+    other_field = fake_run(tmp_path / "alpha", "country_road", "xdsac", "smoke", [1.0, 2.0],
+                           sweep=["init_alpha=0.01,0.1"])  # fmt: skip
+    assert len(read_runs([by_values[0], other_field])) == 2  # what they sweep differs: two sweeps
+
+    out = tmp_path / "report"
+    write_report([*by_values, folders["dsac"]], out)
+    assert (out / "sweep_low+high.png").read_bytes().startswith(PNG)
+    assert "![sweep](sweep_low+high.png)" in (out / "report.md").read_text()
+
+
 def test_a_run_that_diverged_is_reported_as_diverged_naming_seed_and_step(tmp_path):
     """The trainer stops a diverged run after writing the chunk's metrics (non-finite values as "nan");
     the report said only "incomplete" of it."""

@@ -32,7 +32,7 @@ from xrl_jax.report_figures import (
 from xrl_jax.runs.folder import RunFolderError, first_nonfinite_metric, read_run_config, run_paths
 from xrl_jax.runs.kept import distinct_runs, keep_records, protocol_groups
 from xrl_jax.runs.plots import plot_sweep
-from xrl_jax.runs.summary import summarize_pooled, summarize_run, summary_metrics
+from xrl_jax.runs.summary import pooled_config, summarize_pooled, summarize_run, summary_metrics
 from xrl_jax.train.kinds import scenario_kind
 
 PAPER_RESULTS = Path(__file__).resolve().parents[1] / "docs" / "paper_results.json"
@@ -91,8 +91,8 @@ def _read_config(folder: Path):
 
 
 def read_runs(folders: list[Path], note=None) -> list[Run]:
-    """The runs of ``folders``, with the plain runs of one protocol that each started from their own
-    base seed pooled into one (:func:`~xrl_jax.runs.kept.protocol_groups`,
+    """The runs of ``folders``, with the runs of one protocol that each started from their own base
+    seed, or trained other values of one sweep, pooled into one (:func:`~xrl_jax.runs.kept.protocol_groups`,
     :func:`~xrl_jax.runs.summary.summarize_pooled`); ``note`` takes a line about every pool."""
     runs = []
     for parts in protocol_groups([(folder, _read_config(folder)) for folder in folders], note):
@@ -100,8 +100,8 @@ def read_runs(folders: list[Path], note=None) -> list[Run]:
             ((folder, cfg),) = parts
             runs.append(Run((folder,), cfg, summarize_run(folder, cfg)))
         else:
-            cfg = parts[0][1].replace(num_seeds=sum(c.num_seeds for _, c in parts))
-            runs.append(Run(tuple(folder for folder, _ in parts), cfg, summarize_pooled(parts)))
+            folders = tuple(folder for folder, _ in parts)
+            runs.append(Run(folders, pooled_config(parts), summarize_pooled(parts)))
     return runs
 
 
@@ -404,7 +404,7 @@ def _write_report(
         finished = [r for r in runs if r.cfg.env == env and not r.is_sweep and r.summary["aggregate"]]
         for run in (r for r in runs if r.cfg.env == env and r.is_sweep):
             baseline = next((b for b in finished if b.cfg.algo == BASELINES.get(run.cfg.algo)), None)
-            path = out / f"sweep_{run.name}.png"
+            path = out / f"sweep_{'+'.join(folder.name for folder in run.folders)}.png"  # a link: no spaces
             if run.summary["sweep"]["points"] and any(p["aggregate"] for p in run.summary["sweep"]["points"]):
                 plot_sweep(run.summary, path, baseline.summary if baseline else None)
                 lines += ["", f"Sweep {run.label}: {run.status()}", "", f"![sweep]({path.name})", ""]

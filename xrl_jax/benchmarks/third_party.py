@@ -22,8 +22,9 @@ in the unbounded space and the env applies tanh (the ratio taken there, as ours 
 ``state_std`` makes log σ a Dense head of the features, clipped to SAC's bounds, as our squashed
 Gaussian has it; ``observation`` feeds it our flat encoding (:class:`~xrl_jax.extractors.FlatPEExtractor`
 with no frequencies: the points without their constant present and index columns) instead of
-gymnax's flat observation. The entropy bonus stays rejax's: the Gaussian's closed form before the
-squash (``ent_coef=0`` takes it out of both sides).
+gymnax's flat observation; ``global_clip`` clips each gradient's global norm at ``clip_norm``, as
+ours does, where rejax clips every element at it (``optax.clip``). The entropy bonus stays rejax's:
+the Gaussian's closed form before the squash (``ent_coef=0`` takes it out of both sides).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from xrl_jax import stats
 from xrl_jax.config import LOG_STD_MAX, SAC_LOG_STD_MIN, TrainConfig, resolve_config
 
 # rejax's own PPO, then given ours piece by piece, each rung with the ones before (module docstring).
-REJAX_LADDER = ("own", "squash", "state_std", "observation")
+REJAX_LADDER = ("own", "squash", "state_std", "observation", "global_clip")
 
 
 def _has(rejax_with: str, piece: str) -> bool:
@@ -156,6 +157,24 @@ def _state_std_actor(actor):
     return StateStdGaussian(actor.action_dim, actor.action_range, actor.hidden_layer_sizes, actor.activation)
 
 
+def _with_global_norm_clip(algo):
+    """``algo`` whose actor and critic optimisers clip the gradient's global norm at its
+    ``max_grad_norm`` (ours) instead of every element at it (rejax's ``optax.clip``)."""
+    import dataclasses
+
+    import optax
+    from rejax.algos.algorithm import register_init
+
+    class GlobalClipPPO(type(algo)):
+        @register_init
+        def initialize_network_params(self, rng):
+            states = super().initialize_network_params(rng)
+            tx = optax.chain(optax.clip_by_global_norm(self.max_grad_norm), optax.adam(self.learning_rate))
+            return {name: ts.replace(tx=tx, opt_state=tx.init(ts.params)) for name, ts in states.items()}
+
+    return GlobalClipPPO(**{field.name: getattr(algo, field.name) for field in dataclasses.fields(algo)})
+
+
 def make_rejax_ppo(cfg: TrainConfig, rejax_with: str = "own"):
     """rejax's PPO with ``cfg``'s shared settings on Tracking through :mod:`envs.gymnax`, evaluating
     nothing while it trains (ours evaluates outside its timed chunks too); ``rejax_with``: a rung of
@@ -180,6 +199,8 @@ def make_rejax_ppo(cfg: TrainConfig, rejax_with: str = "own"):
     algo = algo.replace(eval_callback=lambda algo, ts, rng: jnp.zeros(()))
     if _has(rejax_with, "state_std"):
         algo = algo.replace(actor=_state_std_actor(algo.actor))
+    if _has(rejax_with, "global_clip"):
+        algo = _with_global_norm_clip(algo)
     return algo
 
 

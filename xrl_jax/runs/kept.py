@@ -87,24 +87,27 @@ def _note(note, line: str) -> None:
 
 
 def protocol(cfg) -> str:
-    """What a plain run measures: its settings without :data:`EXECUTION_SETTINGS`, as one string."""
+    """What a run measures: its settings without :data:`EXECUTION_SETTINGS`, as one string; of a
+    sweep, the fields it sweeps but not their values, so that pieces of one sweep (some values each,
+    trained a session at a time) are one protocol."""
     settings = {k: v for k, v in cfg.to_dict().items() if k not in EXECUTION_SETTINGS}
+    if cfg.sweep:
+        settings["sweep"] = [name for name, _ in cfg.sweep]
     return json.dumps(settings, sort_keys=True, default=str)
 
 
 def protocol_groups(configs: list[tuple[Path, Any]], note=None) -> list[list[tuple[Path, Any]]]:
-    """``(folder, cfg)`` of every run, grouped: the plain runs of one :func:`protocol` whose base seeds
-    all differ are one group, in order of base seed (a protocol's seeds trained a few at a time, in
-    runs of ``--set seed=S``); every other run is a group of its own. Runs of one protocol from one
-    base seed trained the same seeds, so they stay apart; ``note`` takes a line about that and about
-    every pool."""
+    """``(folder, cfg)`` of every run, grouped: the runs of one :func:`protocol` are one group, in
+    order of base seed (a protocol's seeds trained a few at a time, in runs of ``--set seed=S``; a
+    sweep's values or seeds, in pieces), unless two of them trained one seed of one sweep point (the
+    same base seed and a point both swept, or two plain runs from one base seed): then each is a group
+    of its own; ``note`` takes a line about that and about every pool."""
     groups: dict[str, list[tuple[Path, Any]]] = {}
     for folder, cfg in configs:
-        key = f"sweep {folder.resolve()}" if cfg.num_points > 1 else protocol(cfg)
-        groups.setdefault(key, []).append((folder, cfg))
+        groups.setdefault(protocol(cfg), []).append((folder, cfg))
     out = []
     for parts in groups.values():
-        if len(parts) == 1 or len({cfg.seed for _, cfg in parts}) < len(parts):
+        if len(parts) == 1 or not _trained_apart(parts):
             if len(parts) > 1 and note is not None:
                 names = ", ".join(folder.name for folder, _ in parts)
                 note(f"{names} ran one protocol from one base seed (the same seeds); reported separately")
@@ -115,6 +118,14 @@ def protocol_groups(configs: list[tuple[Path, Any]], note=None) -> list[list[tup
             pooled = ", ".join(f"{f.name}: {c.num_seeds} from base seed {c.seed}" for f, c in out[-1])
             note(f"one protocol's seeds pooled into one row ({pooled})")
     return out
+
+
+def _trained_apart(parts: list[tuple[Path, Any]]) -> bool:
+    """Whether no two of the runs trained one seed of one sweep point (a plain run: one point)."""
+    trained = [
+        (cfg.seed, json.dumps(values, sort_keys=True)) for _, cfg in parts for values in cfg.sweep_points
+    ]
+    return len(set(trained)) == len(trained)
 
 
 def keep_records(folders: list[Path], out: Path) -> None:

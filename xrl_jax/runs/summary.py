@@ -133,49 +133,82 @@ def summarize_run(out: str | Path, cfg) -> dict[str, Any]:
     ``aggregate`` and ``curve`` as in a plain run, over that point's seeds.
     """
     out = Path(out)
-    evaluations = _member_evaluations(out, cfg)
-    stems = _member_stems(cfg)
-    final = cfg.total_steps
-    summary = _header(cfg)
-    if cfg.num_points == 1:
-        summary |= _over_seeds(evaluations, cfg)
-    else:
-        finished = [m for m, rows in enumerate(evaluations) if final in rows]
-        points = []
-        for point, values in enumerate(cfg.sweep_points):
-            members = cfg.point_members(point)
-            finals = [evaluations[m][final] for m in members if final in evaluations[m]]
-            points.append({
-                "point": point,
-                "values": dict(values),
-                "seeds": [cfg.member_point_seed(m)[1] for m in members if final in evaluations[m]],
-                "complete": len(finals) == cfg.num_seeds,
-                "aggregate": aggregate_metrics(finals, cfg.env) if finals else {},
-                "curve": curve_over_seeds([evaluations[m] for m in members], cfg.env),
-            })  # fmt: skip
-        summary |= {
-            "seeds": [stems[m] for m in finished],
-            "complete": len(finished) == cfg.num_members,
-            "per_seed": {stems[m]: _per_seed_row(evaluations[m][final]) for m in finished},
-            "aggregate": {},  # over points it would mix hyper-parameters: see sweep.points[i].aggregate
-            "curve": [],  # likewise: sweep.points[i].curve
-            "sweep": {"fields": [name for name, _ in cfg.sweep], "points": points},
-        }
+    summary = _header(cfg) | _over_members(_member_evaluations(out, cfg), cfg)
     if cfg.scenario.on_tracks:
         summary["training_tracks"] = _training_tracks(out, cfg)
     return summary
 
 
+def pooled_config(parts: list[tuple[str | Path, Any]]):
+    """The config of runs ``(folder, cfg)`` of one protocol pooled: the seeds of them all; for pieces
+    of one sweep (each some of its values, from its own base seed), the grid of every value any piece
+    swept, with as many seeds per point as the fullest point has (a point fewer pieces trained then
+    reads as incomplete). Pieces must sweep the same fields."""
+    first = parts[0][1]
+    if not first.sweep:
+        return first.replace(num_seeds=sum(cfg.num_seeds for _, cfg in parts))
+    fields = [name for name, _ in first.sweep]
+    if any([name for name, _ in cfg.sweep] != fields for _, cfg in parts):
+        raise ValueError("pieces of one sweep must sweep the same fields")
+    values = {name: {value for _, cfg in parts for value in dict(cfg.sweep)[name]} for name in fields}
+    grid = tuple((name, tuple(sorted(values[name]))) for name in fields)
+    merged = first.replace(sweep=grid, num_seeds=1)
+    seeds = max(sum(cfg.num_seeds for _, cfg in _pieces_at(parts, values)) for values in merged.sweep_points)
+    return merged.replace(num_seeds=seeds)
+
+
+def _pieces_at(parts, values: dict[str, float]) -> list[tuple[Path, Any]]:
+    return [(folder, cfg) for folder, cfg in parts if values in cfg.sweep_points]
+
+
 def summarize_pooled(parts: list[tuple[str | Path, Any]]) -> dict[str, Any]:
-    """Plain runs ``(folder, cfg)`` of one protocol, each trained from its own base seed (say one
-    session's seeds and the next's), summarised as one run over all their seeds, as
-    :func:`summarize_run` would summarise one run of them all: seed ``k`` of the pool is the ``k``-th
-    seed in the order given. Which seeds trained on which tracks (``training_tracks``) is left out."""
-    if any(cfg.num_points > 1 for _, cfg in parts):
-        raise ValueError("a sweep is summarised per point and never pooled with another run")
-    evaluations = [rows for out, cfg in parts for rows in _member_evaluations(Path(out), cfg)]
-    cfg = parts[0][1].replace(num_seeds=len(evaluations))
-    return _header(cfg) | _over_seeds(evaluations, cfg)
+    """Runs ``(folder, cfg)`` of one protocol, each trained from its own base seed (say one session's
+    seeds and the next's), summarised as one run of :func:`pooled_config` over all their seeds, as
+    :func:`summarize_run` would summarise one run of them all: seed ``k`` of the pool (of a sweep
+    point) is the ``k``-th seed in the order given. Which seeds trained on which tracks
+    (``training_tracks``) is left out."""
+    cfg = pooled_config(parts)
+    pieces = [_member_evaluations(Path(out), part) for out, part in parts]
+    if not cfg.sweep:
+        evaluations = [rows for piece in pieces for rows in piece]
+    else:
+        evaluations = []
+        for values in cfg.sweep_points:
+            here = [piece[member] for piece, (_, part) in zip(pieces, parts, strict=True)
+                    if values in part.sweep_points
+                    for member in part.point_members(part.sweep_points.index(values))]  # fmt: skip
+            evaluations += here + [{}] * (cfg.num_seeds - len(here))  # seeds no piece trained here
+    return _header(cfg) | _over_members(evaluations, cfg)
+
+
+def _over_members(evaluations: list[dict[int, dict]], cfg) -> dict[str, Any]:
+    """The summary's results from every member's evaluations (point-major), per point in a sweep."""
+    if cfg.num_points == 1:
+        return _over_seeds(evaluations, cfg)
+    final, stems = cfg.total_steps, _member_stems(cfg)
+    finished = [m for m, rows in enumerate(evaluations) if final in rows]
+    points = []
+    for point, values in enumerate(cfg.sweep_points):
+        members = cfg.point_members(point)
+        finals = [evaluations[m][final] for m in members if final in evaluations[m]]
+        points.append({
+            "point": point,
+            "values": dict(values),
+            "seeds": [cfg.member_point_seed(m)[1] for m in members if final in evaluations[m]],
+            "complete": len(finals) == cfg.num_seeds,
+            "aggregate": aggregate_metrics(finals, cfg.env) if finals else {},
+            "curve": curve_over_seeds([evaluations[m] for m in members], cfg.env),
+        })  # fmt: skip
+    return {
+        "seeds": [stems[m] for m in finished],
+        "complete": len(finished) == cfg.num_members,
+        "per_seed": {
+            stems[m]: _per_seed_row(evaluations[m][final], cfg.member_point_seed(m)) for m in finished
+        },
+        "aggregate": {},  # over points it would mix hyper-parameters: see sweep.points[i].aggregate
+        "curve": [],  # likewise: sweep.points[i].curve
+        "sweep": {"fields": [name for name, _ in cfg.sweep], "points": points},
+    }
 
 
 def _header(cfg) -> dict[str, Any]:
@@ -189,14 +222,18 @@ def _over_seeds(evaluations: list[dict[int, dict]], cfg) -> dict[str, Any]:
     return {
         "seeds": sorted(finals),
         "complete": len(finals) == cfg.num_seeds,
-        "per_seed": {str(s): _per_seed_row(r, drop=_SWEEP_RECORD_FIELDS) for s, r in finals.items()},
+        "per_seed": {str(s): _per_seed_row(r, (0, s), drop=_SWEEP_RECORD_FIELDS) for s, r in finals.items()},
         "aggregate": aggregate_metrics([finals[s] for s in sorted(finals)], cfg.env) if finals else {},
         "curve": curve_over_seeds(evaluations, cfg.env),
     }
 
 
-def _per_seed_row(row: dict, drop: tuple[str, ...] = ()) -> dict:
-    return {k: v for k, v in row.items() if k != "episode_returns" and k not in drop}
+def _per_seed_row(row: dict, member: tuple[int, int], drop: tuple[str, ...] = ()) -> dict:
+    """``row`` without its per-episode values, its point and seed those of ``member`` (point, seed) in
+    the summary (in a pool, not the piece's own); ``drop``: fields left out."""
+    point, seed = member
+    row = {k: v for k, v in row.items() if k != "episode_returns"} | {"point": point, "seed": seed}
+    return {k: v for k, v in row.items() if k not in drop}
 
 
 def _training_tracks(out: Path, cfg) -> dict[str, Any]:
