@@ -41,7 +41,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cli_args import OneLineParser, fail, fraction, positive_int
 
-from xrl_jax.benchmarks.third_party import REJAX_LADDER
+from xrl_jax.benchmarks.third_party import REJAX_PIECES
 from xrl_jax.config import PRESETS, ConfigError, parse_overrides
 
 ROOT = Path(__file__).resolve().parents[1]  # the working tree that `compare` times against another commit
@@ -120,10 +120,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="how our side values the 60 s time limit: bootstrap (ours) or terminal (rejax's reading)",
     )  # fmt: skip
     rj_parser.add_argument(
-        "--rejax-with", default="own", choices=list(REJAX_LADDER),
-        help="rejax's side given ours piece by piece, each with the ones before: its own PPO; its Gaussian "
-        "sampled before a tanh the env applies (squash); log sigma a head of the features (state_std); "
-        "our flat encoding of the observation (observation); the gradient's global norm clipped, not each "
+        "--rejax-with", default=(), type=rejax_pieces, metavar="PIECE[,PIECE...]",
+        help="rejax's side given pieces of ours (default: none, its own PPO): its Gaussian sampled before "
+        "a tanh the env applies (squash); log sigma a head of the features (state_std); our flat "
+        "encoding of the observation (observation); the gradient's global norm clipped, not each "
         "element (global_clip)",
     )  # fmt: skip
     rj_parser.add_argument(
@@ -253,6 +253,17 @@ def check_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -
         return
     if any(seeds % devices_for(seeds, n) for seeds in args.seeds for n in args.devices):
         parser.error("every --seeds value must be a multiple of every --devices value")
+
+
+def rejax_pieces(text: str) -> tuple[str, ...]:
+    """``--rejax-with``'s comma-separated pieces of ours, each known and given once."""
+    pieces = tuple(piece.strip() for piece in text.split(","))
+    unknown = [piece for piece in pieces if piece not in REJAX_PIECES]
+    if unknown or len(set(pieces)) < len(pieces):
+        raise argparse.ArgumentTypeError(
+            f"expected distinct pieces of {', '.join(REJAX_PIECES)}, got {text!r}"
+        )
+    return pieces
 
 
 def rejax_changes(args: argparse.Namespace) -> dict[str, object]:

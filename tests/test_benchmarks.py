@@ -42,7 +42,8 @@ def bench():
         (["rejax", "--steps", "1000"], "--steps must be a multiple of one rollout"),
         (["rejax", "--envs", "4", "--rollout-steps", "3", "--steps", "12"], "which --minibatches must split"),
         (["rejax", "--ent-coef", "nan"], "--ent-coef: expected a number in [0, 1], got nan"),
-        (["rejax", "--rejax-with", "tanh"], "--rejax-with: invalid choice: 'tanh'"),
+        (["rejax", "--rejax-with", "squash,tanh"], "--rejax-with: expected distinct pieces of squash, "),
+        (["rejax", "--rejax-with", "squash,squash"], "--rejax-with: expected distinct pieces of"),
         (["rejax", "--truncation", "drop"], "--truncation: invalid choice: 'drop'"),
     ],
 )
@@ -56,6 +57,9 @@ def test_bench_rejax_ablation_options_become_the_settings_they_change(bench):
         return bench.rejax_changes(bench.build_parser().parse_args(["rejax", *args]))
 
     assert changes() == {"truncation": "bootstrap"}  # ours as it trains
+    parse = bench.build_parser().parse_args
+    assert parse(["rejax"]).rejax_with == ()  # rejax's own PPO
+    assert parse(["rejax", "--rejax-with", "global_clip, squash"]).rejax_with == ("global_clip", "squash")
     assert changes("--truncation", "terminal", "--ent-coef", "0", "--value-clip") == {
         "truncation": "terminal", "ent_coef": 0.0, "value_clip_eps": 0.2,
     }  # fmt: skip

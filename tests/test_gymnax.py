@@ -204,19 +204,21 @@ def test_the_rejax_comparison_gives_both_ppos_the_same_settings():
     assert float(make_rejax_ppo(ablation).ent_coef) == 0.0
 
 
-def test_the_rejax_ablation_gives_rejax_ours_piece_by_piece():
+def test_the_rejax_ablation_gives_rejax_pieces_of_ours():
     """squash: the env takes unbounded actions and applies tanh (rejax's clip never acts); state_std:
-    also log σ a head of the features, so σ varies with the observation; observation: also our flat
-    encoding, the points without their constant present and index columns; global_clip: also the
-    gradient's global norm clipped at clip_norm, where rejax clips each element."""
+    log σ a head of the features, so σ varies with the observation; observation: our flat encoding,
+    the points without their constant present and index columns; global_clip: the gradient's global
+    norm clipped at clip_norm, where rejax clips each element. Any of them together."""
     pytest.importorskip("rejax", reason="rejax is not installed (pip install -e '.[gymnax-tests]')")
     from xrl_jax.benchmarks.third_party import comparison_config, make_rejax_ppo
 
     cfg = comparison_config(seeds=1, total_steps=8192, num_envs=16, rollout_steps=128, epochs=2,
                             minibatches=4, width=32, depth=2)  # fmt: skip
-    with pytest.raises(ValueError, match="rejax_with must be one of"):
-        make_rejax_ppo(cfg, "tanh")
-    own, squash = make_rejax_ppo(cfg), make_rejax_ppo(cfg, "squash")
+    for wrong in (["tanh"], "squash"):  # an unknown piece; a string, whose letters are no pieces
+        with pytest.raises(ValueError, match="rejax_with takes pieces of"):
+            make_rejax_ppo(cfg, wrong)
+    own, squash = make_rejax_ppo(cfg), make_rejax_ppo(cfg, ["squash"])
+    assert type(own.actor).__name__ == type(squash.actor).__name__ == "GaussianPolicy"
     assert np.all(np.asarray(own.env.action_space(own.env_params).high) == 1.0)
     assert np.all(np.isinf(np.asarray(squash.env.action_space(squash.env_params).high)))
     key = jax.random.PRNGKey(0)
@@ -226,14 +228,14 @@ def test_the_rejax_ablation_gives_rejax_ours_piece_by_piece():
     expected = own.env.step(key, state, jnp.tanh(wide), own.env_params)[1]
     chex.assert_trees_all_equal(stepped, expected)  # tanh taken eagerly in both: the same input bits
 
-    state_std = make_rejax_ppo(cfg, "state_std")
+    state_std = make_rejax_ppo(cfg, ["state_std"])
+    assert np.all(np.asarray(state_std.env.action_space(state_std.env_params).high) == 1.0)  # no squash
     params = state_std.actor.init(key, obs[None], key)
     other = jax.random.normal(key, obs[None].shape)
     std = [state_std.actor.apply(params, o, method="_action_dist").stddev() for o in (obs[None], other)]
     assert not np.allclose(std[0], std[1])  # rejax's own σ is one parameter vector for every state
 
-    ours = make_rejax_ppo(cfg, "observation")
-    # Each rung keeps the ones before: the state-dependent σ and the unbounded (squashed) actions.
+    ours = make_rejax_ppo(cfg, ["squash", "state_std", "observation"])
     assert type(ours.actor).__name__ == "StateStdGaussian" and np.isinf(ours.actor.action_range[1])
     flat, _ = ours.env.reset(key, ours.env_params)
     rows = np.asarray(obs[6:]).reshape(25, 4)  # gymnax's flat observation: state, then 25 rows
@@ -244,16 +246,16 @@ def test_the_rejax_ablation_gives_rejax_ours_piece_by_piece():
     # global_clip: a gradient of ones is clipped to norm clip_norm as a whole (each element
     # clip_norm/sqrt(n)), not element by element (each clip_norm); Adam's first moment after one
     # step is (1 - b1) times what the clip let through, in both.
-    for rung, each in (("observation", lambda n: 0.5), ("global_clip", lambda n: 0.5 / np.sqrt(n))):
-        algo = make_rejax_ppo(cfg, rung)
+    for pieces, each in (((), lambda n: 0.5), (["global_clip"], lambda n: 0.5 / np.sqrt(n))):
+        algo = make_rejax_ppo(cfg, pieces)
         assert float(algo.max_grad_norm) == cfg.agent.clip_norm == 0.5
+        assert type(algo.actor).__name__ == "GaussianPolicy"  # nothing else of ours
         for ts in (algo.init_state(key).actor_ts, algo.init_state(key).critic_ts):
             ones = jax.tree_util.tree_map(jnp.ones_like, ts.params)
             n = sum(x.size for x in jax.tree_util.tree_leaves(ones))
             first_moment = ts.apply_gradients(grads=ones).opt_state[1][0].mu
             for leaf in jax.tree_util.tree_leaves(first_moment):  # float32 rounding of 0.1 * 0.5 / sqrt(n)
                 np.testing.assert_allclose(leaf, 0.1 * each(n), rtol=1e-5)
-    assert type(algo.actor).__name__ == "StateStdGaussian"  # the rungs before it kept
 
 
 @pytest.mark.slow  # two PPOs trained (8,192 steps each) and evaluated on 5 held-out tracks

@@ -16,8 +16,8 @@ does not. Both train on a fixed bank of 128 tracks (rejax on envs.make's default
 trainer's bank of that size). ``bench.py rejax --truncation terminal`` and ``--value-clip`` give ours
 rejax's readings.
 
-``rejax_with`` gives rejax's side ours piece by piece, each rung of :data:`REJAX_LADDER` with the
-ones before it (the ablation of ``bench.py rejax --rejax-with``): ``squash`` samples rejax's Gaussian
+``rejax_with`` gives rejax's side pieces of ours, any of :data:`REJAX_PIECES` (the ablation of
+``bench.py rejax --rejax-with``): ``squash`` samples rejax's Gaussian
 in the unbounded space and the env applies tanh (the ratio taken there, as ours takes it);
 ``state_std`` makes log σ a Dense head of the features, clipped to SAC's bounds, as our squashed
 Gaussian has it; ``observation`` feeds it our flat encoding (:class:`~xrl_jax.extractors.FlatPEExtractor`
@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -43,12 +43,8 @@ import numpy as np
 from xrl_jax import stats
 from xrl_jax.config import LOG_STD_MAX, SAC_LOG_STD_MIN, TrainConfig, resolve_config
 
-# rejax's own PPO, then given ours piece by piece, each rung with the ones before (module docstring).
-REJAX_LADDER = ("own", "squash", "state_std", "observation", "global_clip")
-
-
-def _has(rejax_with: str, piece: str) -> bool:
-    return REJAX_LADDER.index(rejax_with) >= REJAX_LADDER.index(piece)
+# What rejax's PPO can be given of ours, any of them together (module docstring); none: its own.
+REJAX_PIECES = ("squash", "state_std", "observation", "global_clip")
 
 
 def _our_flat_observation(obs):
@@ -97,7 +93,7 @@ def _train_ours(cfg: TrainConfig, folder: Path) -> tuple[np.ndarray, float]:
     return returns, steps / sum(seconds)
 
 
-def _rejax_env(rejax_with: str):
+def _rejax_env(rejax_with: Collection[str]):
     """Tracking for rejax (gymnax's older step API), with ``rejax_with``'s pieces of ours: ``squash``
     takes unbounded actions and applies tanh to them (rejax's clip to the box then never acts);
     ``observation`` gives our flat encoding instead of gymnax's flat observation."""
@@ -105,7 +101,7 @@ def _rejax_env(rejax_with: str):
 
     from envs import gymnax as carenv_gymnax
 
-    squash, ours = _has(rejax_with, "squash"), _has(rejax_with, "observation")
+    squash, ours = "squash" in rejax_with, "observation" in rejax_with
     env, params = carenv_gymnax.make("tracking", flat_obs=not ours)
     if not (squash or ours):
         return carenv_gymnax.legacy_step_api(env), params
@@ -175,12 +171,13 @@ def _with_global_norm_clip(algo):
     return GlobalClipPPO(**{field.name: getattr(algo, field.name) for field in dataclasses.fields(algo)})
 
 
-def make_rejax_ppo(cfg: TrainConfig, rejax_with: str = "own"):
+def make_rejax_ppo(cfg: TrainConfig, rejax_with: Collection[str] = ()):
     """rejax's PPO with ``cfg``'s shared settings on Tracking through :mod:`envs.gymnax`, evaluating
-    nothing while it trains (ours evaluates outside its timed chunks too); ``rejax_with``: a rung of
-    :data:`REJAX_LADDER`."""
-    if rejax_with not in REJAX_LADDER:
-        raise ValueError(f"rejax_with must be one of {', '.join(REJAX_LADDER)}, got {rejax_with!r}")
+    nothing while it trains (ours evaluates outside its timed chunks too); ``rejax_with``: pieces of
+    ours it is given (:data:`REJAX_PIECES`)."""
+    unknown = [piece for piece in rejax_with if piece not in REJAX_PIECES]
+    if isinstance(rejax_with, str) or unknown:
+        raise ValueError(f"rejax_with takes pieces of {', '.join(REJAX_PIECES)}, got {rejax_with!r}")
     try:
         import rejax
     except ImportError:
@@ -197,14 +194,14 @@ def make_rejax_ppo(cfg: TrainConfig, rejax_with: str = "own"):
         agent_kwargs={"hidden_layer_sizes": (a.actor_width,) * a.actor_depth, "activation": "relu"},
     )  # fmt: skip
     algo = algo.replace(eval_callback=lambda algo, ts, rng: jnp.zeros(()))
-    if _has(rejax_with, "state_std"):
+    if "state_std" in rejax_with:
         algo = algo.replace(actor=_state_std_actor(algo.actor))
-    if _has(rejax_with, "global_clip"):
+    if "global_clip" in rejax_with:
         algo = _with_global_norm_clip(algo)
     return algo
 
 
-def _train_rejax(cfg: TrainConfig, seed: int, rejax_with: str) -> tuple[Any, Any, float]:
+def _train_rejax(cfg: TrainConfig, seed: int, rejax_with: Collection[str]) -> tuple[Any, Any, float]:
     """(algorithm, trained actor params per member, env steps per second of the compiled training,
     compilation excluded)."""
     algo = make_rejax_ppo(cfg, rejax_with)
@@ -217,7 +214,7 @@ def _train_rejax(cfg: TrainConfig, seed: int, rejax_with: str) -> tuple[Any, Any
     return algo, train_state.actor_ts.params, rate
 
 
-def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, rejax_with: str) -> np.ndarray:
+def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, rejax_with: Collection[str]) -> np.ndarray:
     """Greedy returns (the mean action, clipped or squashed as it trained, on the observation it
     trained on) per member on the trainer's held-out tracks."""
     from envs.gymnax import flatten_observation
@@ -228,9 +225,9 @@ def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, rejax_with: str) -> np
 
     def greedy(key, params, obs, env_states, per_episode):
         del key, env_states, per_episode
-        observe = _our_flat_observation if _has(rejax_with, "observation") else flatten_observation
+        observe = _our_flat_observation if "observation" in rejax_with else flatten_observation
         mean = algo.actor.apply(params, observe(obs), method="_action_dist").mean()
-        return jnp.tanh(mean) if _has(rejax_with, "squash") else jnp.clip(mean, -1.0, 1.0)
+        return jnp.tanh(mean) if "squash" in rejax_with else jnp.clip(mean, -1.0, 1.0)
 
     evaluate = make_evaluate_policy(env, eval_params, greedy, cfg.eval_episodes)
     keys = jax.random.split(jax.random.PRNGKey(cfg.eval_track_seed), cfg.num_seeds)
@@ -241,14 +238,15 @@ def _evaluate_rejax(cfg: TrainConfig, algo, actor_params, rejax_with: str) -> np
 def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: int = 16,
                       rollout_steps: int = 128, epochs: int = 4, minibatches: int = 8, width: int = 64,
                       depth: int = 2, folder: str | None = None, eval_episodes: int = 100,
-                      rejax_with: str = "own",
+                      rejax_with: Collection[str] = (),
                       changes: Mapping[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
     """Both PPOs at the settings given, ``seeds`` members each: final greedy returns per seed (over
     ``eval_episodes`` held-out tracks) with their IQM and 95 % interval, P(ours > rejax) with the
-    Mann-Whitney test, and env steps per second. ``rejax_with``: rejax's own PPO or given ours piece by
-    piece (:data:`REJAX_LADDER`); ``changes``: settings of the config changed for an ablation, read by
-    both sides where rejax has them (``ent_coef``), else by ours alone (``truncation="terminal"``,
-    ``value_clip_eps``: rejax's readings of the time limit and the value loss)."""
+    Mann-Whitney test, and env steps per second. ``rejax_with``: pieces of ours rejax's PPO is given
+    (:data:`REJAX_PIECES`; none: its own); ``changes``: settings of the config changed for an
+    ablation, read by both sides where rejax has them (``ent_coef``), else by ours alone
+    (``truncation="terminal"``, ``value_clip_eps``: rejax's readings of the time limit and the value
+    loss)."""
     cfg = comparison_config(seeds, total_steps, num_envs, rollout_steps, epochs, minibatches, width, depth,
                             eval_episodes, changes)  # fmt: skip
     with tempfile.TemporaryDirectory() as scratch:
@@ -269,7 +267,7 @@ def ppo_against_rejax(seeds: int = 8, total_steps: int = 1_048_576, num_envs: in
         "lr": a.actor_lr, "gamma": a.gamma, "gae_lambda": a.gae_lambda, "clip_eps": a.clip_eps,
         "ent_coef": a.ent_coef, "clip_norm": a.clip_norm, "eval_episodes": cfg.eval_episodes,
         "xrl_jax_truncation": a.truncation, "xrl_jax_value_clip_eps": a.value_clip_eps,
-        "rejax_with": rejax_with,
+        "rejax_with": [piece for piece in REJAX_PIECES if piece in rejax_with],
     }  # fmt: skip
     return {
         "settings": settings,
