@@ -243,6 +243,12 @@ def test_the_rejax_ablation_gives_rejax_pieces_of_ours():
     np.testing.assert_array_equal(np.asarray(flat), expected_flat)
     assert ours.env.observation_space(ours.env_params).shape == flat.shape == (6 + 25 * 2,)
 
+    for piece in ("squash", "state_std", "observation"):  # each alone builds rejax's networks and optimisers
+        observed = make_rejax_ppo(cfg, [piece])
+        shape = observed.env.observation_space(observed.env_params).shape
+        assert shape == observed.env.reset(key, observed.env_params)[0].shape
+        assert observed.init_state(key).actor_ts.params is not None
+
     # global_clip: a gradient of ones is clipped to norm clip_norm as a whole (each element
     # clip_norm/sqrt(n)), not element by element (each clip_norm); Adam's first moment after one
     # step is (1 - b1) times what the clip let through, in both.

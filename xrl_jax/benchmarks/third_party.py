@@ -113,7 +113,7 @@ def _rejax_env(rejax_with: Collection[str]):
             return (
                 spaces.Box(-jnp.inf, jnp.inf, example.shape, example.dtype)
                 if ours
-                else super().observation_space(params)
+                else self._env.observation_space(params)  # the wrapper delegates by __getattr__ only
             )
 
         def action_space(self, params=None):
