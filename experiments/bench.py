@@ -41,7 +41,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cli_args import OneLineParser, fail, fraction, positive_int
 
-from xrl_jax.benchmarks.third_party import REJAX_PIECES
+from xrl_jax.benchmarks import REJAX_PIECES  # jax-free: compare's parent imports no jax
 from xrl_jax.config import PRESETS, ConfigError, parse_overrides
 
 ROOT = Path(__file__).resolve().parents[1]  # the working tree that `compare` times against another commit

@@ -198,8 +198,13 @@ def test_the_rows_of_bench_train_carry_what_compare_reads():
     assert all(f'"{field}":' in source for field in (*C.KEY_FIELDS, *C.WORK_FIELDS, "env_steps_per_s"))
 
 
-def test_the_orchestration_imports_no_jax():
-    code = "import sys; import xrl_jax.benchmarks.compare; assert 'jax' not in sys.modules, 'jax imported'"
+@pytest.mark.parametrize(
+    "imports",
+    ["import xrl_jax.benchmarks.compare",
+     f"sys.path.insert(0, {str(ROOT / 'experiments')!r}); import bench"],  # bench.py compare's parent
+)  # fmt: skip
+def test_the_orchestration_imports_no_jax(imports):
+    code = f"import sys; {imports}; assert 'jax' not in sys.modules, 'jax imported'"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
 

@@ -247,7 +247,8 @@ def test_the_rejax_ablation_gives_rejax_pieces_of_ours():
         observed = make_rejax_ppo(cfg, [piece])
         shape = observed.env.observation_space(observed.env_params).shape
         assert shape == observed.env.reset(key, observed.env_params)[0].shape
-        assert observed.init_state(key).actor_ts.params is not None
+        first_layer = observed.init_state(key).actor_ts.params["params"]["features"]["Dense_0"]["kernel"]
+        assert first_layer.shape[0] == shape[-1]  # the actor built for the observation the env gives
 
     # global_clip: a gradient of ones is clipped to norm clip_norm as a whole (each element
     # clip_norm/sqrt(n)), not element by element (each clip_norm); Adam's first moment after one

@@ -100,8 +100,8 @@ def read_runs(folders: list[Path], note=None) -> list[Run]:
             ((folder, cfg),) = parts
             runs.append(Run((folder,), cfg, summarize_run(folder, cfg)))
         else:
-            folders = tuple(folder for folder, _ in parts)
-            runs.append(Run(folders, pooled_config(parts), summarize_pooled(parts)))
+            pooled = tuple(folder for folder, _ in parts)
+            runs.append(Run(pooled, pooled_config(parts), summarize_pooled(parts)))
     return runs
 
 

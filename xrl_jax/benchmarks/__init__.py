@@ -15,6 +15,10 @@ timings, these do. docs/benchmarks.md holds the measured numbers.
 
 import importlib
 
+# What ``bench.py rejax --rejax-with`` can give rejax's PPO of ours (:mod:`.third_party`); here, where
+# bench.py's parser reads it without importing jax.
+REJAX_PIECES = ("squash", "state_std", "observation", "global_clip")
+
 # Loaded on first use, so that ``xrl_jax.benchmarks.compare`` (bench.py compare, which only starts
 # other processes) imports no jax: on a GPU host a parent holding the device takes its children's memory.
 _EXPORTS = {
@@ -40,4 +44,4 @@ def __getattr__(name):
     raise AttributeError(f"module 'xrl_jax.benchmarks' has no attribute {name!r}")
 
 
-__all__ = sorted(_EXPORTS)
+__all__ = sorted([*_EXPORTS, "REJAX_PIECES"])

@@ -41,10 +41,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from xrl_jax import stats
+from xrl_jax.benchmarks import REJAX_PIECES  # any of them together (module docstring); none: its own
 from xrl_jax.config import LOG_STD_MAX, SAC_LOG_STD_MIN, TrainConfig, resolve_config
-
-# What rejax's PPO can be given of ours, any of them together (module docstring); none: its own.
-REJAX_PIECES = ("squash", "state_std", "observation", "global_clip")
 
 
 def _our_flat_observation(obs):
@@ -106,7 +104,7 @@ def _rejax_env(rejax_with: Collection[str]):
     if not (squash or ours):
         return carenv_gymnax.legacy_step_api(env), params
     observe = _our_flat_observation if ours else lambda obs: obs
-    example = observe(env.reset(jax.random.PRNGKey(0), params)[0])
+    example = observe(env.reset(jax.random.PRNGKey(0), params)[0]) if ours else None  # its shape
 
     class WithOurs(carenv_gymnax.LegacyStepAPI):
         def observation_space(self, params=None):

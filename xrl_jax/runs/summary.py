@@ -150,15 +150,16 @@ def pooled_config(parts: list[tuple[str | Path, Any]]):
     fields = [name for name, _ in first.sweep]
     if any([name for name, _ in cfg.sweep] != fields for _, cfg in parts):
         raise ValueError("pieces of one sweep must sweep the same fields")
-    values = {name: {value for _, cfg in parts for value in dict(cfg.sweep)[name]} for name in fields}
-    grid = tuple((name, tuple(sorted(values[name]))) for name in fields)
-    merged = first.replace(sweep=grid, num_seeds=1)
-    seeds = max(sum(cfg.num_seeds for _, cfg in _pieces_at(parts, values)) for values in merged.sweep_points)
-    return merged.replace(num_seeds=seeds)
+    swept = {name: {value for _, cfg in parts for value in dict(cfg.sweep)[name]} for name in fields}
+    merged = first.replace(sweep=tuple((name, tuple(sorted(swept[name]))) for name in fields), num_seeds=1)
+    configs = [cfg for _, cfg in parts]
+    per_point = [sum(configs[i].num_seeds for i in _pieces_at(configs, p)) for p in merged.sweep_points]
+    return merged.replace(num_seeds=max(per_point))
 
 
-def _pieces_at(parts, values: dict[str, float]) -> list[tuple[Path, Any]]:
-    return [(folder, cfg) for folder, cfg in parts if values in cfg.sweep_points]
+def _pieces_at(configs: list, values: dict[str, float]) -> list[int]:
+    """The indices of the pieces (their configs) that swept the point ``values``."""
+    return [index for index, cfg in enumerate(configs) if values in cfg.sweep_points]
 
 
 def summarize_pooled(parts: list[tuple[str | Path, Any]]) -> dict[str, Any]:
@@ -172,11 +173,12 @@ def summarize_pooled(parts: list[tuple[str | Path, Any]]) -> dict[str, Any]:
     if not cfg.sweep:
         evaluations = [rows for piece in pieces for rows in piece]
     else:
-        evaluations = []
+        configs, evaluations = [part for _, part in parts], []
         for values in cfg.sweep_points:
-            here = [piece[member] for piece, (_, part) in zip(pieces, parts, strict=True)
-                    if values in part.sweep_points
-                    for member in part.point_members(part.sweep_points.index(values))]  # fmt: skip
+            here = []
+            for i in _pieces_at(configs, values):
+                point = configs[i].sweep_points.index(values)
+                here += [pieces[i][member] for member in configs[i].point_members(point)]
             evaluations += here + [{}] * (cfg.num_seeds - len(here))  # seeds no piece trained here
     return _header(cfg) | _over_members(evaluations, cfg)
 
