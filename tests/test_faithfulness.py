@@ -472,3 +472,16 @@ def test_deleting_agent_is_scored_by_the_evaluation(tracking_xsac):
     traced = DeletingAgent(agent, rank_random, None).act(key, (state, jnp.asarray(5, jnp.int32)), obs, "eval")
     np.testing.assert_array_equal(traced, static)
     assert not np.array_equal(static, agent.act(key, state, obs, "eval"))  # five of the points deleted
+
+
+def test_a_seed_whose_evaluation_left_no_observation_has_a_nan_policy_change_not_a_crash():
+    """A seed with nothing to delete from (no evaluation step kept) is NaN, which the IQM over seeds
+    skips, where it divided by zero before."""
+    from xrl_jax.explain.run_deletion import _policy_change
+
+    def never_called(*args):
+        raise AssertionError("no observation: the policy must not be evaluated")
+
+    empty = {"cones": np.zeros((0, 4, 3), np.float32)}
+    change = _policy_change(never_called, None, empty, jax.random.key(0), num_ks=3)
+    assert change.shape == (3,) and np.isnan(change).all()

@@ -43,9 +43,12 @@ def _policy_change_program(agent, ranker: str, ks):
     )
 
 
-def _policy_change(curve, agent_state, sample, key) -> np.ndarray:
-    """(len(ks),) the mean TV over up to ``POLICY_STATES`` observations of ``sample``, in chunks."""
+def _policy_change(curve, agent_state, sample, key, num_ks: int) -> np.ndarray:
+    """(num_ks,) the mean TV over up to ``POLICY_STATES`` observations of ``sample``, in chunks; NaN
+    for a seed whose evaluation left none (the IQM over seeds skips it)."""
     count = min(POLICY_STATES, len(jax.tree.leaves(sample)[0]))
+    if count == 0:
+        return np.full(num_ks, np.nan)
     total = 0.0
     for start in range(0, count, STATE_CHUNK):
         stop = min(start + STATE_CHUNK, count)
@@ -85,7 +88,7 @@ def deletion_curves(cfg, trainer, agent_states, samples, episodes: int, key, not
         for seed in range(seeds):
             state = jax.tree.map(lambda leaf, s=seed: leaf[s], agent_states)
             seed_key = jax.random.fold_in(key, seed)
-            rows["tv"].append(_policy_change(curve, state, samples[seed], seed_key))
+            rows["tv"].append(_policy_change(curve, state, samples[seed], seed_key, len(ks)))
             results = jax.device_get(evaluate(seed_key, state))
             for metric in metrics:
                 rows[metric].append(np.asarray(results[metric], np.float64).mean(-1))
