@@ -272,9 +272,10 @@ def rejax_changes(args: argparse.Namespace) -> dict[str, object]:
     if args.ent_coef is not None:
         changes["ent_coef"] = args.ent_coef
     if args.value_clip:
-        from xrl_jax.config import AgentConfig
+        from xrl_jax.config import resolve_config
 
-        changes["value_clip_eps"] = AgentConfig().clip_eps  # rejax's value clip is its ratio's range
+        # rejax clips the value by its ratio's range: the comparison's, which its preset sets.
+        changes["value_clip_eps"] = resolve_config("tracking", "ppo", "quick").agent.clip_eps
     return changes
 
 
