@@ -239,7 +239,9 @@ def test_a_field_added_since_restores_as_zeros_and_any_other_difference_fails(tm
     checkpointer.save(1, Before(params={"w": jnp.arange(3.0)}, counter=jnp.int32(4)), {"step": 1})
     owed = jax.ShapeDtypeStruct((2,), jnp.int32)
     abstract = After(params={"w": jax.ShapeDtypeStruct((3,), jnp.float32)}, counter=jnp.int32(0), owed=owed)
-    state, meta = checkpointer.restore(abstract)
+    # Read by a fresh checkpointer, as a resume in a new process reads it (the one that saved knew the
+    # state's handler already, which hid that a fresh one could not read the state's metadata).
+    state, meta = Checkpointer(tmp_path).restore(abstract)
     assert meta == {"step": 1} and int(state.counter) == 4
     np.testing.assert_array_equal(state.params["w"], np.arange(3.0))
     assert state.owed.shape == (2,) and state.owed.dtype == jnp.int32 and not np.any(state.owed)

@@ -89,7 +89,11 @@ class Checkpointer:
         options = ocp.CheckpointManagerOptions(
             max_to_keep=int(max_to_keep), create=True, enable_async_checkpointing=False
         )
-        self._manager = ocp.CheckpointManager(self.directory, options=options)
+        # The items' handlers named up front: a fresh manager (a resume, a new process) otherwise knows
+        # only the items it was asked to restore, and reading the state's metadata alone (the fields
+        # an older version did not write) found nothing, with a warning.
+        handlers = {"state": ocp.StandardCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
+        self._manager = ocp.CheckpointManager(self.directory, options=options, item_handlers=handlers)
         self.unverified_steps: list[int] = []  # steps restored without a digest manifest
 
     def save(self, step: int, state: Any, metadata: dict) -> None:
