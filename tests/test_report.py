@@ -473,7 +473,9 @@ def test_runs_of_one_protocol_from_different_base_seeds_are_pooled_into_one_row(
     notes.clear()
     runs = read_runs([pool[0], twin, longer], note=notes.append)
     assert sorted(r.name for r in runs) == ["first", "longer", "twin"]
-    assert notes == ["first, twin ran one protocol from one base seed (the same seeds); reported separately"]
+    assert notes == [
+        "first, twin trained the same seeds of one protocol (one base seed); reported separately"
+    ]
 
 
 def test_pieces_of_one_sweep_are_pooled_into_the_sweep_of_them_all(folders, tmp_path):
@@ -510,7 +512,9 @@ def test_pieces_of_one_sweep_are_pooled_into_the_sweep_of_them_all(folders, tmp_
     notes = []
     runs = read_runs([by_values[0], again], note=notes.append)
     assert sorted(r.name for r in runs) == ["again", "low"]
-    assert notes == ["low, again ran one protocol from one base seed (the same seeds); reported separately"]
+    assert notes == [
+        "low, again trained the same seeds of a sweep point both swept (one base seed); reported separately"
+    ]
     other_field = fake_run(tmp_path / "alpha", "country_road", "xdsac", "smoke", [1.0, 2.0],
                            sweep=["init_alpha=0.01,0.1"])  # fmt: skip
     assert len(read_runs([by_values[0], other_field])) == 2  # what they sweep differs: two sweeps

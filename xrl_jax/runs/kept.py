@@ -110,7 +110,8 @@ def protocol_groups(configs: list[tuple[Path, Any]], note=None) -> list[list[tup
         if len(parts) == 1 or not _trained_apart(parts):
             if len(parts) > 1 and note is not None:
                 names = ", ".join(folder.name for folder, _ in parts)
-                note(f"{names} ran one protocol from one base seed (the same seeds); reported separately")
+                where = "a sweep point both swept" if parts[0][1].sweep else "one protocol"
+                note(f"{names} trained the same seeds of {where} (one base seed); reported separately")
             out += [[part] for part in parts]
             continue
         out.append(sorted(parts, key=lambda part: part[1].seed))
