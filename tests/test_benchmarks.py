@@ -63,7 +63,9 @@ def test_bench_rejax_ablation_options_become_the_settings_they_change(bench):
     from xrl_jax.benchmarks.third_party import comparison_config
 
     # rejax clips its value by the ratio's range: the comparison's own ε, whatever the preset sets.
-    clip_eps = comparison_config(1, 4000, 2, 1000, 1, 1, 8, 1).agent.clip_eps
+    comparison = comparison_config(seeds=1, total_steps=4000, num_envs=2, rollout_steps=1000, epochs=1,
+                                   minibatches=1, width=8, depth=1)  # fmt: skip
+    clip_eps = comparison.agent.clip_eps
     assert changes("--truncation", "terminal", "--ent-coef", "0", "--value-clip") == {
         "truncation": "terminal", "ent_coef": 0.0, "value_clip_eps": clip_eps,
     }  # fmt: skip
