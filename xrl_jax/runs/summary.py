@@ -152,14 +152,13 @@ def pooled_config(parts: list[tuple[str | Path, Any]]):
         raise ValueError("pieces of one sweep must sweep the same fields")
     swept = {name: {value for _, cfg in parts for value in dict(cfg.sweep)[name]} for name in fields}
     merged = first.replace(sweep=tuple((name, tuple(sorted(swept[name]))) for name in fields), num_seeds=1)
-    configs = [cfg for _, cfg in parts]
-    per_point = [sum(configs[i].num_seeds for i in _pieces_at(configs, p)) for p in merged.sweep_points]
+    per_point = [sum(parts[i][1].num_seeds for i in _pieces_at(parts, p)) for p in merged.sweep_points]
     return merged.replace(num_seeds=max(per_point))
 
 
-def _pieces_at(configs: list, values: dict[str, float]) -> list[int]:
-    """The indices of the pieces (their configs) that swept the point ``values``."""
-    return [index for index, cfg in enumerate(configs) if values in cfg.sweep_points]
+def _pieces_at(parts: list[tuple[str | Path, Any]], values: dict[str, float]) -> list[int]:
+    """The indices of the pieces ``(folder, cfg)`` that swept the point ``values``."""
+    return [index for index, (_, cfg) in enumerate(parts) if values in cfg.sweep_points]
 
 
 def summarize_pooled(parts: list[tuple[str | Path, Any]]) -> dict[str, Any]:
@@ -173,12 +172,13 @@ def summarize_pooled(parts: list[tuple[str | Path, Any]]) -> dict[str, Any]:
     if not cfg.sweep:
         evaluations = [rows for piece in pieces for rows in piece]
     else:
-        configs, evaluations = [part for _, part in parts], []
+        evaluations = []
         for values in cfg.sweep_points:
             here = []
-            for i in _pieces_at(configs, values):
-                point = configs[i].sweep_points.index(values)
-                here += [pieces[i][member] for member in configs[i].point_members(point)]
+            for i in _pieces_at(parts, values):
+                piece_cfg = parts[i][1]
+                point = piece_cfg.sweep_points.index(values)
+                here += [pieces[i][member] for member in piece_cfg.point_members(point)]
             evaluations += here + [{}] * (cfg.num_seeds - len(here))  # seeds no piece trained here
     return _header(cfg) | _over_members(evaluations, cfg)
 
