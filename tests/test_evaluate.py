@@ -11,6 +11,7 @@ from train_support import prepare_cache
 
 from xrl_jax import stats
 from xrl_jax.evaluation import make_evaluate, summarize_episodes
+from xrl_jax.evaluation.protocol import empty_record, record_step
 from xrl_jax.runs.plots import format_step_axis, plot_learning_curve
 from xrl_jax.runs.summary import learning_curve, summarize_run
 from xrl_jax.runs.tables import format_curve, format_table
@@ -59,6 +60,27 @@ def test_full_throttle_straight_ahead_leaves_the_track(scripted_evaluate):
     assert (episodes["progress"] > 0).all() and summary["avg_end_progress_m"] == pytest.approx(
         float(np.mean(episodes["progress"]))
     )
+
+
+def test_an_ended_episode_keeps_its_record_while_the_others_step_on():
+    # Two steps of three episodes: the first terminates at step 1, the third is truncated at step 2.
+    no, yes = False, True
+    a = jnp.array
+    record = empty_record(3, floats=("progress",), ints=("cones_hit",))
+    first = {"progress": a([5.0, 6.0, 7.0]), "cones_hit": a([1, 1, 1])}
+    rewards, terminated, truncated = a([1.0, 2.0, 3.0]), a([yes, no, no]), a([no, no, no])
+    record = record_step(record, a([no, no, no]), rewards, terminated, truncated, **first)
+    second = {"progress": a([8.0, 9.0, 10.0]), "cones_hit": a([4, 5, 6])}
+    rewards, terminated, truncated = a([10.0, 20.0, 30.0]), a([no, no, no]), a([no, no, yes])
+    record = record_step(record, a([yes, no, no]), rewards, terminated, truncated, **second)
+    np.testing.assert_array_equal(record["return"], [1.0, 22.0, 33.0])
+    np.testing.assert_array_equal(record["length"], [1, 2, 2])
+    np.testing.assert_array_equal(record["terminated"], [yes, no, no])
+    np.testing.assert_array_equal(record["truncated"], [no, no, yes])
+    np.testing.assert_array_equal(record["last_reward"], [1.0, 20.0, 30.0])
+    np.testing.assert_array_equal(record["progress"], [5.0, 9.0, 10.0])
+    np.testing.assert_array_equal(record["cones_hit"], [1, 5, 6])
+    assert record["length"].dtype == jnp.int32 and record["cones_hit"].dtype == jnp.int32
 
 
 def test_episode_classification_closed_form():

@@ -28,7 +28,25 @@ EPISODE_FIELDS = ("return", "length", "terminated", "truncated", "last_reward", 
 # episodes that ended so, avg_end_<name>.
 END_REASONS = {
     LEFT_TRACK: "left_track", MAX_TIME: "time_limit", IDLING: "idling", NONFINITE_ACTION: "invalid_action"
-}
+}  # fmt: skip
+
+
+def empty_record(num_episodes: int, floats: tuple[str, ...] = (), ints: tuple[str, ...] = ()) -> dict:
+    """Each episode's record before its first step: return, length, how it ended and its last reward,
+    plus an env's own ``floats`` and ``ints`` (each ``(num_episodes,)``)."""
+    zeros = jnp.zeros((num_episodes,), jnp.result_type(float))
+    counts, ended = jnp.zeros((num_episodes,), jnp.int32), jnp.zeros((num_episodes,), bool)
+    record = {"return": zeros, "length": counts, "terminated": ended, "truncated": ended}
+    return record | {"last_reward": zeros} | dict.fromkeys(floats, zeros) | dict.fromkeys(ints, counts)
+
+
+def record_step(record: dict, done, reward, terminated, truncated, **latest) -> dict:
+    """``record`` after one step of every episode: the reward added to the return, one step counted,
+    how the step ended and the env's ``latest`` values taken; an episode already ``done`` before the
+    step keeps its record (the batch steps on until every episode has ended)."""
+    stepped = latest | {"return": record["return"] + reward, "length": record["length"] + 1,
+                        "terminated": terminated, "truncated": truncated, "last_reward": reward}  # fmt: skip
+    return {name: jnp.where(done, old, stepped[name]).astype(old.dtype) for name, old in record.items()}
 
 
 def make_evaluate(env, eval_params, agent, num_episodes: int, mode: str = "eval"):
@@ -88,20 +106,8 @@ def make_evaluate_policy(env, eval_params, policy, num_episodes: int):
     def evaluate(key, policy_state):
         reset_key, key = jax.random.split(key)
         obs, env_state = reset_all(jax.random.split(reset_key, num_episodes), tracks, tables)
-        float_dtype = jnp.result_type(float)
-        zeros = jnp.zeros((num_episodes,), float_dtype)
-        false = jnp.zeros((num_episodes,), bool)
-        record = {
-            "return": zeros,
-            "length": jnp.zeros((num_episodes,), jnp.int32),
-            "terminated": false,
-            "truncated": false,
-            "last_reward": zeros,
-            "track_velocity": zeros,
-            "cones_hit": jnp.zeros((num_episodes,), jnp.int32),
-            "done_reason": jnp.zeros((num_episodes,), jnp.int32),
-            "progress": zeros,
-        }
+        record = empty_record(num_episodes, floats=("track_velocity", "progress"),
+                              ints=("cones_hit", "done_reason"))  # fmt: skip
 
         def running(carry):
             # At most max_steps + 1 rounds, whatever the policy outputs. The env truncates every episode
@@ -116,25 +122,13 @@ def make_evaluate_policy(env, eval_params, policy, num_episodes: int):
             obs, env_state, reward, terminated, truncated, info = step_all(
                 jax.random.split(step_key, num_episodes), env_state, action, tracks, tables
             )
-            live = ~done
-
-            def keep(new, old):
-                return jnp.where(live, new, old).astype(old.dtype)
-
-            record = {
-                "return": keep(record["return"] + reward, record["return"]),
-                "length": keep(record["length"] + 1, record["length"]),
-                "terminated": keep(terminated, record["terminated"]),
-                "truncated": keep(truncated, record["truncated"]),
-                "last_reward": keep(reward, record["last_reward"]),
-                "track_velocity": keep(info["avg_track_velocity"], record["track_velocity"]),
-                "cones_hit": keep(info["cones_hit"], record["cones_hit"]),
-                "done_reason": keep(info["done_reason"], record["done_reason"]),
-                "progress": keep(info["track_progress"], record["progress"]),
-            }
+            latest = {"track_velocity": info["avg_track_velocity"], "progress": info["track_progress"]}
+            latest |= {"cones_hit": info["cones_hit"], "done_reason": info["done_reason"]}
+            record = record_step(record, done, reward, terminated, truncated, **latest)
             return obs, env_state, done | terminated | truncated, record, key, t + 1
 
-        carry = (obs, env_state, false, record, key, jnp.zeros((), jnp.int32))
+        not_done = jnp.zeros((num_episodes,), bool)
+        carry = (obs, env_state, not_done, record, key, jnp.zeros((), jnp.int32))
         return jax.lax.while_loop(running, body, carry)[3]
 
     return evaluate

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from xrl_jax.agents import check_eval_mode
+from xrl_jax.evaluation.protocol import empty_record, record_step
 
 
 def reset_episode_keys(seed: int, num_episodes: int) -> tuple[jax.Array, jax.Array]:
@@ -35,14 +36,7 @@ def make_evaluate_resets(
 
     def evaluate(key, agent_state):
         obs, env_state = reset_all(reset_keys, params)
-        zeros, false = jnp.zeros((num_episodes,), jnp.result_type(float)), jnp.zeros((num_episodes,), bool)
-        record = {
-            "return": zeros,
-            "length": jnp.zeros((num_episodes,), jnp.int32),
-            "terminated": false,
-            "truncated": false,
-            "last_reward": zeros,
-        }
+        record = empty_record(num_episodes)
 
         def running(carry):  # ends after max_steps rounds whatever the env and the policy output
             done, t = carry[2], carry[5]
@@ -55,21 +49,11 @@ def make_evaluate_resets(
             step_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(stream_keys, t)
             obs, env_state, reward, terminated, truncated, _ = step_all(step_keys, env_state, action, params)
             truncated = truncated | (t + 1 >= max_steps)
-            live = ~done
-
-            def keep(new, old):
-                return jnp.where(live, new, old).astype(old.dtype)
-
-            record = {
-                "return": keep(record["return"] + reward, record["return"]),
-                "length": keep(record["length"] + 1, record["length"]),
-                "terminated": keep(terminated, record["terminated"]),
-                "truncated": keep(truncated & ~terminated, record["truncated"]),
-                "last_reward": keep(reward, record["last_reward"]),
-            }
+            record = record_step(record, done, reward, terminated, truncated & ~terminated)
             return obs, env_state, done | terminated | truncated, record, key, t + 1
 
-        carry = (obs, env_state, false, record, key, jnp.zeros((), jnp.int32))
+        not_done = jnp.zeros((num_episodes,), bool)
+        carry = (obs, env_state, not_done, record, key, jnp.zeros((), jnp.int32))
         return jax.lax.while_loop(running, body, carry)[3]
 
     return evaluate
