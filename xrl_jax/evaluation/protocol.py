@@ -31,6 +31,11 @@ END_REASONS = {
 }  # fmt: skip
 
 
+# The racing env's info entries an episode's record keeps, by record field (their last value).
+_FROM_INFO = {"track_velocity": "avg_track_velocity", "progress": "track_progress", "cones_hit": "cones_hit",
+              "done_reason": "done_reason"}  # fmt: skip
+
+
 def empty_record(num_episodes: int, floats: tuple[str, ...] = (), ints: tuple[str, ...] = ()) -> dict:
     """Each episode's record before its first step: return, length, how it ended and its last reward,
     plus an env's own ``floats`` and ``ints`` (each ``(num_episodes,)``)."""
@@ -106,8 +111,9 @@ def make_evaluate_policy(env, eval_params, policy, num_episodes: int):
     def evaluate(key, policy_state):
         reset_key, key = jax.random.split(key)
         obs, env_state = reset_all(jax.random.split(reset_key, num_episodes), tracks, tables)
-        record = empty_record(num_episodes, floats=("track_velocity", "progress"),
-                              ints=("cones_hit", "done_reason"))  # fmt: skip
+        record = empty_record(
+            num_episodes, floats=("track_velocity", "progress"), ints=("cones_hit", "done_reason")
+        )
 
         def running(carry):
             # At most max_steps + 1 rounds, whatever the policy outputs. The env truncates every episode
@@ -122,8 +128,7 @@ def make_evaluate_policy(env, eval_params, policy, num_episodes: int):
             obs, env_state, reward, terminated, truncated, info = step_all(
                 jax.random.split(step_key, num_episodes), env_state, action, tracks, tables
             )
-            latest = {"track_velocity": info["avg_track_velocity"], "progress": info["track_progress"]}
-            latest |= {"cones_hit": info["cones_hit"], "done_reason": info["done_reason"]}
+            latest = {name: info[key] for name, key in _FROM_INFO.items()}
             record = record_step(record, done, reward, terminated, truncated, **latest)
             return obs, env_state, done | terminated | truncated, record, key, t + 1
 
